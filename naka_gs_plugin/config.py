@@ -1,0 +1,63 @@
+"""The ``naka-gs`` method: low-light datamanager + splatfacto-style model, wired for ``ns-train``.
+
+Every ``ns-*`` command imports this module at start-up (entry point ``nerfstudio.method_configs``),
+so it stays light and must not import ``nerfstudio.configs.method_configs`` (circular import:
+that module discovers plugins, i.e. imports this one). The optimizer dicts are therefore spelled
+out here; their values are splatfacto's.
+"""
+
+from __future__ import annotations
+
+import torch
+from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
+from nerfstudio.engine.optimizers import AdamOptimizerConfig
+from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
+from nerfstudio.engine.trainer import TrainerConfig
+from nerfstudio.models.splatfacto import SplatfactoModelConfig
+from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
+from nerfstudio.plugins.types import MethodSpecification
+
+from naka_gs_plugin.data.lowlight_datamanager import LowLightDatamanagerConfig
+
+MAX_STEPS = 30000
+
+
+def _adam(lr: float, final: float | None = None, warmup: int = 0) -> dict:
+    scheduler = None
+    if final is not None:
+        scheduler = ExponentialDecaySchedulerConfig(
+            lr_final=final, max_steps=MAX_STEPS, warmup_steps=warmup, lr_pre_warmup=0
+        )
+    return {"optimizer": AdamOptimizerConfig(lr=lr, eps=1e-15), "scheduler": scheduler}
+
+
+naka_gs_method = MethodSpecification(
+    config=TrainerConfig(
+        method_name="naka-gs",
+        steps_per_eval_image=100,
+        steps_per_eval_batch=0,
+        steps_per_save=2000,
+        steps_per_eval_all_images=1000,
+        max_num_iterations=MAX_STEPS,
+        mixed_precision=False,
+        # nerfstudio defaults to "cuda", which dies on machines without one.
+        machine=MachineConfig(device_type="cuda" if torch.cuda.is_available() else "cpu"),
+        pipeline=VanillaPipelineConfig(
+            datamanager=LowLightDatamanagerConfig(),
+            model=SplatfactoModelConfig(),
+        ),
+        optimizers={
+            "means": _adam(1.6e-4, final=1.6e-6),
+            "features_dc": _adam(0.0025),
+            "features_rest": _adam(0.0025 / 20),
+            "opacities": _adam(0.05),
+            "scales": _adam(0.005),
+            "quats": _adam(0.001),
+            "camera_opt": _adam(1e-4, final=5e-7, warmup=1000),
+            "bilateral_grid": _adam(2e-3, final=1e-4, warmup=1000),
+        },
+        viewer=ViewerConfig(num_rays_per_chunk=1 << 15),
+        vis="viewer",
+    ),
+    description="Naka-GS: low-light 3D Gaussian Splatting (Naka-Rushton enhanced training images)",
+)

@@ -1,0 +1,109 @@
+"""Low-light datamanager: nerfstudio's FullImageDatamanager plus train-only enhancement.
+
+Training images are enhanced once, after loading and undistortion, by the configured
+:class:`~naka_gs_plugin.enhance.pipeline.Enhancer` (disk-cached); eval images are never touched,
+so metrics compare renders against the real normal-light ground truth. Scenes without
+ground-truth eval images (RealX3D) train without evaluation, and anything asking for eval images
+gets a one-line :class:`MissingGroundTruthError`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Dict, List, Literal, Tuple, Type, Union
+
+import torch
+from nerfstudio.cameras.cameras import Cameras
+from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanager, FullImageDatamanagerConfig
+from nerfstudio.data.datasets.base_dataset import InputDataset
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig
+from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
+
+
+class MissingGroundTruthError(RuntimeError):
+    """Raised when an operation needs eval images that the scene does not have."""
+
+
+class LowLightDataset(InputDataset):
+    """An InputDataset that knows whether its split has ground-truth images.
+
+    nerfstudio's trainer evaluates only ``if datamanager.eval_dataset:``; a split whose images are
+    missing is therefore falsy (its cameras still load, e.g. for rendering the test trajectory).
+    """
+
+    def __bool__(self) -> bool:
+        return bool(self._dataparser_outputs.metadata.get("has_ground_truth", True)) and len(self) > 0
+
+
+@dataclass
+class LowLightDatamanagerConfig(FullImageDatamanagerConfig):
+    """FullImageDatamanager whose training images pass through the enhancement pipeline."""
+
+    _target: Type = field(default_factory=lambda: LowLightDatamanager)
+    dataparser: LowLightDataParserConfig = field(default_factory=LowLightDataParserConfig)
+    enhance: EnhanceConfig = field(default_factory=EnhanceConfig)
+    """Enhancement applied to training images only (``--pipeline.datamanager.enhance.sigma`` ...)."""
+    cache_images_type: Literal["uint8", "float32"] = "float32"
+    """float32 keeps the enhanced images' precision; uint8 quarters the memory (rounds after enhancing)."""
+
+
+class LowLightDatamanager(FullImageDatamanager[LowLightDataset]):
+    """See the module docstring."""
+
+    config: LowLightDatamanagerConfig
+
+    def __init__(
+        self,
+        config: LowLightDatamanagerConfig,
+        device: Union[torch.device, str] = "cpu",
+        test_mode: Literal["test", "val", "inference"] = "val",
+        world_size: int = 1,
+        local_rank: int = 0,
+        **kwargs,
+    ):
+        super().__init__(config, device, test_mode, world_size, local_rank, **kwargs)
+        if torch.device(device).type != "cuda" and self.config.cache_images == "cpu":
+            # "cpu" pins memory, which needs an NVIDIA driver; "gpu" means "this datamanager's device".
+            self.config.cache_images = "gpu"
+        self.enhancer = Enhancer(self.config.enhance)
+        self.has_ground_truth = bool(self.eval_dataset)
+        if not self.has_ground_truth:
+            self.eval_unseen_cameras = []
+
+    def _load_images(
+        self, split: Literal["train", "eval"], cache_images_device: Literal["cpu", "gpu"]
+    ) -> List[Dict[str, torch.Tensor]]:
+        if split == "eval" and not self.has_ground_truth:
+            raise MissingGroundTruthError(self._no_gt_message())
+        cached = super()._load_images(split, cache_images_device)
+        if split == "train":
+            enhanced = self.enhancer.enhance_images([d["image"] for d in cached], description="Enhancing train images")
+            for data, image in zip(cached, enhanced):
+                image = image.to(data["image"].device)
+                data["image"] = (image * 255.0).round().to(torch.uint8) if data["image"].dtype == torch.uint8 else image
+        return cached
+
+    def _no_gt_message(self) -> str:
+        return (
+            f"{self.config.dataparser.data}: the '{self.test_split}' split has no ground-truth images "
+            "(its transforms json points at missing files), so there is nothing to evaluate against -- "
+            "use a scene with test images (e.g. LOM, or a naka-gs-sim scene) for metrics"
+        )
+
+    @property
+    def fixed_indices_eval_dataloader(self) -> List[Tuple[Cameras, Dict]]:
+        if not self.has_ground_truth:
+            raise MissingGroundTruthError(self._no_gt_message())
+        return super().fixed_indices_eval_dataloader
+
+    def next_eval_image(self, step: int) -> Tuple[Cameras, Dict]:
+        if not self.has_ground_truth:
+            raise MissingGroundTruthError(self._no_gt_message())
+        return super().next_eval_image(step)
+
+    def next_eval(self, step: int) -> Tuple[Cameras, Dict]:
+        if not self.has_ground_truth:
+            raise MissingGroundTruthError(self._no_gt_message())
+        return super().next_eval(step)

@@ -1,0 +1,289 @@
+"""``lowlight-data``: the scene layout shared by RealX3D and LOM (and written by our simulator).
+
+::
+
+    <scene>/transforms_train.json   frames -> low-light training images (e.g. train/0001.JPG, low/3.JPG)
+    <scene>/transforms_val.json     optional; used for the ``val`` split when present
+    <scene>/transforms_test.json    frames -> normal-light ground truth (images may be absent: RealX3D)
+
+Each json holds intrinsics ``fl_x fl_y cx cy w h`` (pixels; per-frame keys override), optional
+OpenCV distortion ``k1 k2 (k3 k4) p1 p2``, and per frame ``file_path`` (relative to the scene) and
+``transform_matrix``: camera-to-world in the OpenGL convention (x right, y up, looking down -z), which
+is nerfstudio's own, so no axis swap is needed.
+
+Normalization: nerfstudio's ``auto_orient_and_center_poses`` plus auto-scale (largest camera
+coordinate -> 1), computed **on the training poses only** and applied to every split, so all splits
+and any external point cloud share one frame (``dataparser_transform`` [3, 4] and
+``dataparser_scale``; :func:`to_normalized_frame` maps world points into it).
+
+``downscale_factor`` writes downscaled copies to a writable cache (the scene may be read-only).
+Eval frames whose images are all missing still load their poses; ``metadata["has_ground_truth"]``
+is then ``False`` and the datamanager refuses metrics with a one-line message.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Literal, Optional, Tuple, Type
+
+import torch
+from jaxtyping import Float
+from nerfstudio.cameras import camera_utils
+from nerfstudio.cameras.cameras import Cameras, CameraType
+from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataParserConfig, DataparserOutputs
+from nerfstudio.data.scene_box import SceneBox
+from nerfstudio.plugins.registry_dataparser import DataParserSpecification
+from nerfstudio.utils.rich_utils import CONSOLE
+from PIL import Image
+from torch import Tensor
+
+from naka_gs_plugin.enhance.pipeline import default_cache_dir
+
+MAX_AUTO_RESOLUTION = 1600
+"""Auto downscale picks the smallest power of two bringing the longer side to at most this (as nerfstudio-data)."""
+
+_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".JPG", ".JPEG", ".PNG")
+
+
+class LowLightDataError(ValueError):
+    """A scene file is malformed; the message names the file and the fix, on one line."""
+
+
+@dataclass
+class LowLightDataParserConfig(DataParserConfig):
+    """Reads ``transforms_{train,val,test}.json`` scenes (RealX3D, LOM, naka-gs-sim)."""
+
+    _target: Type = field(default_factory=lambda: LowLightDataParser)
+    data: Path = Path("scene")
+    """Scene folder holding transforms_train.json and transforms_test.json."""
+    downscale_factor: Optional[int] = None
+    """Integer image downscale; None picks the smallest power of 2 with the longer side <= 1600 px."""
+    scale_factor: float = 1.0
+    """Extra scale applied to the normalized poses."""
+    orientation_method: Literal["pca", "up", "vertical", "none"] = "up"
+    """Orientation of the normalized frame (nerfstudio's auto_orient_and_center_poses)."""
+    center_method: Literal["poses", "focus", "none"] = "poses"
+    """Centring of the normalized frame."""
+    auto_scale_poses: bool = True
+    """Scale so that the largest absolute camera coordinate is 1 (splatfacto assumes a unit scene)."""
+    cache_dir: Optional[Path] = None
+    """Where downscaled images go; default ``$NAKA_GS_CACHE`` or ``~/.cache/naka-gs``."""
+
+
+def _fail(path: Path, problem: str, fix: str) -> LowLightDataError:
+    return LowLightDataError(f"{path}: {problem} -- {fix}")
+
+
+def load_transforms(path: Path) -> dict:
+    """Read and validate a transforms json; raises :class:`LowLightDataError` naming the file."""
+    if not path.exists():
+        raise _fail(path, "file not found", "every lowlight-data scene needs transforms_train.json and transforms_test.json")
+    try:
+        meta = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise _fail(path, f"malformed json ({err})", "fix the json syntax (e.g. check with `python -m json.tool`)") from None
+    if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list):
+        raise _fail(path, "no 'frames' list", "the file must be an object with a 'frames' list")
+    return meta
+
+
+def _intrinsic(meta: dict, frame: dict, key: str, path: Path) -> float:
+    value = frame.get(key, meta.get(key))
+    if value is None and key in ("fl_x", "fl_y") and "camera_angle_x" in meta:
+        w = float(frame.get("w", meta.get("w", 0)))
+        return 0.5 * w / math.tan(0.5 * float(meta["camera_angle_x"]))
+    if value is None and key in ("cx", "cy"):
+        return 0.5 * float(frame.get("w" if key == "cx" else "h", meta.get("w" if key == "cx" else "h", 0)))
+    if value is None:
+        raise _fail(path, f"missing intrinsic '{key}'", "give fl_x fl_y cx cy w h at the top level or per frame")
+    return float(value)
+
+
+def _resolve_image(scene: Path, frame: dict, index: int, path: Path) -> Path:
+    fp = frame.get("file_path")
+    if not isinstance(fp, str) or not fp.strip():
+        raise _fail(path, f"frame {index} has no usable 'file_path' ({fp!r})", "set it to the image path relative to the scene")
+    candidate = (scene / fp).resolve() if not Path(fp).is_absolute() else Path(fp)
+    if candidate.suffix == "" and not candidate.exists():  # Blender-style extensionless paths
+        for suffix in _IMAGE_SUFFIXES:
+            if candidate.with_suffix(suffix).exists():
+                return candidate.with_suffix(suffix)
+    return candidate
+
+
+def _pose(frame: dict, index: int, path: Path) -> Tensor:
+    try:
+        mat = torch.tensor(frame["transform_matrix"], dtype=torch.float64)
+    except (KeyError, TypeError, ValueError):
+        raise _fail(path, f"frame {index} has no numeric 'transform_matrix'", "give a 4x4 camera-to-world matrix") from None
+    if mat.shape != (4, 4) or not torch.isfinite(mat).all():
+        raise _fail(path, f"frame {index} 'transform_matrix' is not a finite 4x4", "give a 4x4 camera-to-world matrix")
+    return mat
+
+
+@dataclass
+class SplitFrames:
+    """Raw (un-normalized) contents of one transforms json."""
+
+    images: List[Path]
+    poses: Float[Tensor, "N 4 4"]  # OpenGL camera-to-world, world units
+    intrinsics: Float[Tensor, "N 6"]  # fx fy cx cy w h, pixels
+    distortion: Float[Tensor, "N 6"]  # nerfstudio order k1 k2 k3 k4 p1 p2
+    json_path: Path
+
+
+def read_split(scene: Path, json_name: str) -> SplitFrames:
+    """Parse one transforms json of ``scene`` (no normalization, no image checks)."""
+    path = scene / json_name
+    meta = load_transforms(path)
+    images, poses, intr, dist = [], [], [], []
+    for i, frame in enumerate(meta["frames"]):
+        if not isinstance(frame, dict):
+            raise _fail(path, f"frame {i} is not an object", "each frame needs file_path and transform_matrix")
+        images.append(_resolve_image(scene, frame, i, path))
+        poses.append(_pose(frame, i, path))
+        intr.append([_intrinsic(meta, frame, k, path) for k in ("fl_x", "fl_y", "cx", "cy", "w", "h")])
+        k = {key: float(frame.get(key, meta.get(key, 0.0)) or 0.0) for key in ("k1", "k2", "k3", "k4", "p1", "p2")}
+        dist.append(camera_utils.get_distortion_params(**k).tolist())
+    if not images:
+        raise _fail(path, "no frames", "list at least one frame")
+    return SplitFrames(images, torch.stack(poses), torch.tensor(intr, dtype=torch.float64), torch.tensor(dist), path)
+
+
+def normalization(train_poses: Float[Tensor, "N 4 4"], config: LowLightDataParserConfig) -> Tuple[Tensor, float]:
+    """Scene normalization from the training poses: ``([3, 4] transform, scale)``, nerfstudio-style."""
+    _, transform = camera_utils.auto_orient_and_center_poses(
+        train_poses.float().clone(), method=config.orientation_method, center_method=config.center_method
+    )
+    oriented = transform @ train_poses.float()
+    scale = 1.0
+    if config.auto_scale_poses:
+        scale = float(1.0 / torch.max(torch.abs(oriented[:, :3, 3])).clamp(min=1e-12))
+    return transform, scale * config.scale_factor
+
+
+def to_normalized_frame(
+    points: Float[Tensor, "N 3"], transform: Float[Tensor, "3 4"], scale: float
+) -> Float[Tensor, "N 3"]:
+    """Map world points into the dataparser's normalized frame (same map as the camera centres)."""
+    return (points @ transform[:, :3].T + transform[:, 3]) * scale
+
+
+def auto_downscale(width: float, height: float) -> int:
+    """Smallest power of two with the longer side at most :data:`MAX_AUTO_RESOLUTION`."""
+    factor = 1
+    while max(width, height) / factor > MAX_AUTO_RESOLUTION:
+        factor *= 2
+    return factor
+
+
+class LowLightDataParser(DataParser):
+    """Dataparser for ``lowlight-data`` scenes; see the module docstring."""
+
+    config: LowLightDataParserConfig
+
+    def _split_json(self, split: str) -> str:
+        if split == "train":
+            return "transforms_train.json"
+        if split == "val" and (self.config.data / "transforms_val.json").exists():
+            return "transforms_val.json"
+        if split in ("val", "test"):
+            return "transforms_test.json"
+        raise ValueError(f"unknown split {split!r}; expected train, val or test")
+
+    def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
+        scene = self.config.data
+        if not scene.is_dir():
+            raise LowLightDataError(f"{scene}: scene folder not found -- pass --data <folder with transforms_train.json>")
+        train = read_split(scene, "transforms_train.json")
+        frames = train if split == "train" else read_split(scene, self._split_json(split))
+        transform, scale = normalization(train.poses, self.config)
+
+        present = [p.exists() for p in frames.images]
+        has_gt = all(present)
+        if split == "train" or (any(present) and not has_gt):
+            missing = [p for p, ok in zip(frames.images, present) if not ok]
+            if missing:
+                raise _fail(
+                    frames.json_path,
+                    f"image {missing[0]} not found ({len(missing)} of {len(present)} missing)",
+                    "fix file_path or restore the images",
+                )
+        if not has_gt:
+            CONSOLE.log(
+                f"[naka-gs] {frames.json_path}: no ground-truth images for split '{split}' "
+                f"({len(present)} poses load; metrics that need ground truth are skipped)"
+            )
+        else:
+            _check_sizes(frames)
+
+        factor = self.config.downscale_factor or auto_downscale(*frames.intrinsics[0, 4:6].tolist())
+        images = frames.images
+        if factor > 1 and has_gt:
+            images = [downscaled_copy(p, factor, self.config.cache_dir) for p in frames.images]
+
+        poses = transform.double() @ frames.poses
+        poses[:, :3, 3] *= scale
+        fx, fy, cx, cy, w, h = frames.intrinsics.unbind(-1)
+        cameras = Cameras(
+            camera_to_worlds=poses[:, :3, :4].float(),
+            fx=fx.float()[:, None],
+            fy=fy.float()[:, None],
+            cx=cx.float()[:, None],
+            cy=cy.float()[:, None],
+            width=w.round().long()[:, None],
+            height=h.round().long()[:, None],
+            distortion_params=frames.distortion.float(),
+            camera_type=CameraType.PERSPECTIVE,
+        )
+        if factor > 1:
+            cameras.rescale_output_resolution(scaling_factor=1.0 / factor)
+        box = 1.0 * self.config.scale_factor
+        return DataparserOutputs(
+            image_filenames=images,
+            cameras=cameras,
+            scene_box=SceneBox(aabb=torch.tensor([[-box, -box, -box], [box, box, box]], dtype=torch.float32)),
+            dataparser_transform=transform.float(),
+            dataparser_scale=scale,
+            metadata={"has_ground_truth": has_gt, "downscale_factor": factor, "scene": str(scene)},
+        )
+
+
+def _check_sizes(frames: SplitFrames) -> None:
+    """Every image opens and has the json's ``w x h`` (headers only: cheap)."""
+    for path, intr in zip(frames.images, frames.intrinsics):
+        try:
+            with Image.open(path) as im:
+                size = im.size
+        except OSError as err:
+            raise _fail(path, f"unreadable image ({err.__class__.__name__})", "replace it with a valid PNG/JPEG") from None
+        want = (int(round(intr[4].item())), int(round(intr[5].item())))
+        if size != want:
+            raise _fail(path, f"image is {size[0]}x{size[1]} but {frames.json_path.name} says {want[0]}x{want[1]}", "fix w/h in the json")
+
+
+def downscaled_copy(path: Path, factor: int, cache_dir: Optional[Path] = None) -> Path:
+    """Path of ``path`` downscaled by ``factor`` (area filter) in the writable cache; made once."""
+    digest = hashlib.sha1(f"{path.resolve()}|{path.stat().st_mtime_ns}|{path.stat().st_size}".encode()).hexdigest()[:16]
+    out = (cache_dir or default_cache_dir()) / "downscaled" / f"x{factor}" / f"{digest}_{path.stem}.png"
+    if out.exists():
+        return out
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with Image.open(path) as im:
+        # Floor, as nerfstudio's Cameras.rescale_output_resolution does for the intrinsics.
+        size = (int(im.width / factor), int(im.height / factor))
+        small = im.convert("RGB").resize(size, Image.Resampling.BOX)
+    tmp = out.with_suffix(".tmp.png")
+    small.save(tmp)
+    tmp.replace(out)
+    return out
+
+
+lowlight_dataparser = DataParserSpecification(
+    config=LowLightDataParserConfig(),
+    description="Low-light scenes: transforms_{train,val,test}.json with fl_x/fl_y/cx/cy, distortion, OpenGL c2w",
+)

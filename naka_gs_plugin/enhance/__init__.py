@@ -1,0 +1,1 @@
+"""Photometric enhancement of low-light training images (Naka-Rushton response, then correction)."""

@@ -1,0 +1,75 @@
+"""Naka-Rushton pre-enhancement (paper Sec. 3.1; reference: ``naka_color_correction.py``).
+
+Per pixel and per channel the response is ``R = I^n / (I^n + sigma^n)`` (sigma 0.05, n 1 in the
+reference), followed by a linear min-max stretch to [0, 1]. The reference takes the stretch's
+minimum and maximum over one image (all pixels and channels jointly); ``stats="scene"`` pools them
+over every training view instead, so every view gets the same tone curve (the cross-view photometric
+consistency the paper asks for).
+
+Images are sRGB-encoded values in [0, 1], channel-last ``[..., H, W, 3]`` (nerfstudio's layout).
+Everything here is batched, differentiable and finite everywhere, including black, constant and
+saturated frames where the stretch has zero range (the reference then returns all zeros).
+"""
+
+from __future__ import annotations
+
+from typing import Literal, Tuple
+
+import torch
+from jaxtyping import Float
+from torch import Tensor
+
+RANGE_EPS = 1e-6
+"""Below this stretch range the output is all zeros, as in the reference (``_to_01_linear``)."""
+
+_POW_EPS = 1e-12
+"""Floor for ``I`` inside ``I**n``: keeps the gradient of ``x**n`` finite at 0 when ``n < 1``."""
+
+
+def naka_rushton(
+    images: Float[Tensor, "*batch H W C"], sigma: float = 0.05, n: float = 1.0
+) -> Float[Tensor, "*batch H W C"]:
+    """Naka-Rushton response ``I^n / (I^n + sigma^n)`` per pixel and channel; negatives clip to 0."""
+    if sigma <= 0 or n <= 0:
+        raise ValueError(f"Naka-Rushton needs sigma > 0 and n > 0, got sigma={sigma}, n={n}")
+    x = images.clamp(min=0.0)
+    if n == 1.0:
+        return x / (x + sigma)
+    xn = x.clamp(min=_POW_EPS) ** n
+    return xn / (xn + sigma**n)
+
+
+def stretch_stats(response: Float[Tensor, "*batch H W C"]) -> Tuple[Float[Tensor, "*batch"], Float[Tensor, "*batch"]]:
+    """Minimum and maximum of each image over all its pixels and channels."""
+    flat = response.flatten(start_dim=-3)
+    return flat.amin(dim=-1), flat.amax(dim=-1)
+
+
+def linear_stretch(
+    response: Float[Tensor, "*batch H W C"], lo: Float[Tensor, "*batch"], hi: Float[Tensor, "*batch"]
+) -> Float[Tensor, "*batch H W C"]:
+    """Map ``[lo, hi]`` linearly to ``[0, 1]`` (clipped); all zeros where ``hi - lo < RANGE_EPS``."""
+    lo = lo[..., None, None, None]
+    span = (hi[..., None, None, None] - lo)
+    stretched = ((response - lo) / span.clamp(min=RANGE_EPS)).clamp(0.0, 1.0)
+    return torch.where(span >= RANGE_EPS, stretched, torch.zeros_like(stretched))
+
+
+def naka_enhance(
+    images: Float[Tensor, "*batch H W C"],
+    sigma: float = 0.05,
+    n: float = 1.0,
+    stats: Literal["image", "scene"] = "image",
+) -> Float[Tensor, "*batch H W C"]:
+    """Naka-Rushton response then min-max stretch, with per-image or pooled (per-batch) statistics.
+
+    With ``stats="scene"`` the batch is taken to be the whole scene: one ``lo``/``hi`` for all of it.
+    For scenes whose views differ in size use :class:`naka_gs_plugin.enhance.pipeline.Enhancer`.
+    """
+    response = naka_rushton(images, sigma, n)
+    lo, hi = stretch_stats(response)
+    if stats == "scene":
+        lo, hi = lo.amin().expand_as(lo), hi.amax().expand_as(hi)
+    elif stats != "image":
+        raise ValueError(f"stats must be 'image' or 'scene', got {stats!r}")
+    return linear_stretch(response, lo, hi)

@@ -1,0 +1,170 @@
+"""The enhancement pipeline applied to training images: Naka-Rushton now, correction net later.
+
+One :class:`Enhancer` turns a scene's low-light training images into enhanced ones, once, with a
+rich progress bar, and keeps the results in an on-disk cache keyed by image content plus every
+parameter that changes the output, so a second run (or ``ns-eval``/``ns-viewer`` after training)
+does not recompute anything. Eval images never pass through here.
+
+Images in and out are sRGB-encoded, channel-last ``[H, W, 3]``; input ``uint8`` in [0, 255] or
+float in [0, 1]; output ``float32`` in [0, 1].
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import List, Literal, Optional, Sequence, Type
+
+import numpy as np
+import torch
+from jaxtyping import Float, UInt8
+from nerfstudio.configs.base_config import InstantiateConfig
+from nerfstudio.utils.rich_utils import CONSOLE
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from torch import Tensor
+
+from naka_gs_plugin.enhance.naka import linear_stretch, naka_rushton, stretch_stats
+
+CACHE_VERSION = 1
+"""Bump when the enhancement maths change, so stale cache entries are never read."""
+
+
+def default_cache_dir() -> Path:
+    """``$NAKA_GS_CACHE``, else ``$XDG_CACHE_HOME/naka-gs``, else ``~/.cache/naka-gs`` (always writable)."""
+    if os.environ.get("NAKA_GS_CACHE"):
+        return Path(os.environ["NAKA_GS_CACHE"])
+    return Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "naka-gs"
+
+
+@dataclass
+class EnhanceConfig(InstantiateConfig):
+    """Train-image enhancement. CLI: ``--pipeline.datamanager.enhance.sigma 0.05`` and so on."""
+
+    _target: Type = field(default_factory=lambda: Enhancer)
+    method: Literal["naka", "none"] = "naka"
+    """``naka``: Naka-Rushton response + min-max stretch; ``none``: train on the raw images (baseline)."""
+    sigma: float = 0.05
+    """Naka-Rushton semi-saturation constant, in [0, 1] image units (reference: 0.05)."""
+    n: float = 1.0
+    """Naka-Rushton exponent (reference: 1)."""
+    stats: Literal["image", "scene"] = "image"
+    """Min-max stretch statistics: per image (the reference) or pooled over all training views."""
+    cache_dir: Optional[Path] = None
+    """Where enhanced images are cached; default ``$NAKA_GS_CACHE`` or ``~/.cache/naka-gs``."""
+    use_cache: bool = True
+    """Read and write the on-disk cache of enhanced images."""
+
+    def params(self) -> dict:
+        """Everything that changes the output (the cache key's parameter part)."""
+        return {"version": CACHE_VERSION, "method": self.method, "sigma": self.sigma, "n": self.n, "stats": self.stats}
+
+
+def content_hash(image: Tensor) -> str:
+    """SHA-1 of an image tensor's shape, dtype and bytes."""
+    arr = np.ascontiguousarray(image.detach().cpu().numpy())
+    h = hashlib.sha1(f"{arr.shape}{arr.dtype}".encode())
+    h.update(arr.tobytes())
+    return h.hexdigest()
+
+
+def to_float01(image: Tensor) -> Float[Tensor, "H W 3"]:
+    """``uint8`` [0, 255] or float [0, 1] -> ``float32`` [0, 1]; only the first 3 channels (RGB)."""
+    image = image[..., :3]
+    if image.dtype == torch.uint8:
+        return image.float() / 255.0
+    return image.float()
+
+
+class Enhancer:
+    """Applies the configured enhancement to a scene's training images, with a disk cache."""
+
+    def __init__(self, config: EnhanceConfig) -> None:
+        self.config = config
+        self.cache_dir = (config.cache_dir or default_cache_dir()) / "enhanced"
+        self.last_run = {"computed": 0, "cached": 0, "seconds": 0.0}
+        """Counts of the last :meth:`enhance_images` call: images computed vs read from cache."""
+
+    def _keys(self, images: Sequence[Tensor]) -> List[str]:
+        hashes = [content_hash(im) for im in images]
+        params = json.dumps(self.config.params(), sort_keys=True)
+        scene = ""
+        if self.config.stats == "scene":
+            # Each view's output depends on every view: the key covers the whole set.
+            scene = hashlib.sha1("".join(sorted(hashes)).encode()).hexdigest()
+        return [hashlib.sha1(f"{params}|{h}|{scene}".encode()).hexdigest() for h in hashes]
+
+    def _read(self, key: str) -> Optional[Tensor]:
+        path = self.cache_dir / f"{key}.npy"
+        if not (self.config.use_cache and path.exists()):
+            return None
+        try:
+            arr = np.load(path)
+        except (OSError, ValueError):  # truncated by an interrupted write: recompute
+            return None
+        return torch.from_numpy(arr.astype(np.float32) / 65535.0)
+
+    def _write(self, key: str, image: Tensor) -> None:
+        if not self.config.use_cache:
+            return
+        self.cache_dir.mkdir(parents=True, exist_ok=True)
+        # Raw uint16 .npy: lossless to 1.5e-5 and ~40x faster to read than a 16-bit PNG (1 ms vs 50 ms
+        # at 1764x1172), which matters once the correction network makes recomputation expensive.
+        arr = (image.detach().cpu().clamp(0, 1).numpy() * 65535.0).round().astype(np.uint16)
+        tmp = self.cache_dir / f"{key}.tmp.npy"
+        np.save(tmp, arr)
+        os.replace(tmp, self.cache_dir / f"{key}.npy")
+
+    def enhance_images(
+        self, images: Sequence[UInt8[Tensor, "H W C"] | Float[Tensor, "H W C"]], description: str = "Enhancing"
+    ) -> List[Float[Tensor, "H W 3"]]:
+        """Enhance every image (sRGB [0,1] float32 out), reading/writing the cache; shows progress."""
+        start = time.perf_counter()
+        if self.config.method == "none":
+            self.last_run = {"computed": 0, "cached": 0, "seconds": 0.0}
+            return [to_float01(im) for im in images]
+        keys = self._keys(images)
+        out: List[Optional[Tensor]] = [self._read(k) for k in keys]
+        todo = [i for i, o in enumerate(out) if o is None]
+        if todo:
+            lo_scene = hi_scene = None
+            if self.config.stats == "scene":
+                # The pooled statistics need every view, cached or not.
+                lo_scene, hi_scene = self._scene_stats(images)
+            with _progress() as progress:
+                task = progress.add_task(f"{description} ({self.config.method}, {self.config.stats} stats)", total=len(todo))
+                for i in todo:
+                    response = naka_rushton(to_float01(images[i]), self.config.sigma, self.config.n)
+                    lo, hi = stretch_stats(response)
+                    if lo_scene is not None:
+                        lo, hi = lo_scene, hi_scene
+                    # Round to the cache's 16-bit grid so a run is identical with a cold or warm cache.
+                    out[i] = (linear_stretch(response, lo, hi) * 65535.0).round() / 65535.0
+                    self._write(keys[i], out[i])
+                    progress.advance(task)
+        seconds = time.perf_counter() - start
+        self.last_run = {"computed": len(todo), "cached": len(images) - len(todo), "seconds": seconds}
+        CONSOLE.log(
+            f"[naka-gs] {description}: {len(images)} images, {len(todo)} computed, "
+            f"{len(images) - len(todo)} from cache ({self.cache_dir}) in {seconds:.2f} s"
+        )
+        return [o for o in out if o is not None]
+
+    def _scene_stats(self, images: Sequence[Tensor]) -> tuple[Tensor, Tensor]:
+        """Pooled min/max of the Naka response over all views (views may differ in size)."""
+        los, his = zip(*(stretch_stats(naka_rushton(to_float01(im), self.config.sigma, self.config.n)) for im in images))
+        return torch.stack(los).amin(), torch.stack(his).amax()
+
+
+def _progress() -> Progress:
+    return Progress(
+        TextColumn("[progress.description]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=CONSOLE,
+        transient=False,
+    )

@@ -1,0 +1,1 @@
+"""Synthetic low-light scenes with known ground truth."""

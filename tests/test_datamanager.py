@@ -1,0 +1,92 @@
+"""Low-light datamanager: train images enhanced and cached on disk, eval images untouched."""
+
+import shutil
+import time
+
+import pytest
+import torch
+
+import naka_gs_plugin.enhance.pipeline as pipeline_mod
+from naka_gs_plugin.data.lowlight_datamanager import LowLightDatamanagerConfig, MissingGroundTruthError
+from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig
+from naka_gs_plugin.enhance.cli import load_rgb
+from naka_gs_plugin.enhance.naka import naka_enhance
+from naka_gs_plugin.enhance.pipeline import EnhanceConfig
+
+
+def _dm(scene, dtype="float32", **enhance):
+    cfg = LowLightDatamanagerConfig(
+        dataparser=LowLightDataParserConfig(data=scene, downscale_factor=1),
+        enhance=EnhanceConfig(**enhance),
+        cache_images_type=dtype,
+    )
+    return cfg.setup(device="cpu", test_mode="val")
+
+
+def test_train_images_are_naka_enhanced(toy_scene):
+    dm = _dm(toy_scene)
+    for data, path in zip(dm.cached_train, dm.train_dataset.image_filenames):
+        want = naka_enhance(load_rgb(path).float() / 255.0)
+        assert torch.allclose(data["image"], want, atol=2e-5)  # 16-bit cache quantisation
+
+
+def test_eval_images_are_byte_identical_to_source(toy_scene):
+    dm = _dm(toy_scene, dtype="uint8")
+    assert len(dm.cached_eval) == 2
+    for data, path in zip(dm.cached_eval, dm.eval_dataset.image_filenames):
+        assert torch.equal(data["image"][..., :3], load_rgb(path))
+    _, batch = dm.next_eval_image(0)
+    assert torch.equal(batch["image"][..., :3], load_rgb(dm.eval_dataset.image_filenames[batch["image_idx"]]))
+
+
+def test_cache_hit_on_second_run_and_miss_when_sigma_changes(toy_scene, monkeypatch):
+    first = _dm(toy_scene, sigma=0.07)
+    t0 = time.perf_counter()
+    first.cached_train
+    cold = time.perf_counter() - t0
+    assert first.enhancer.last_run["computed"] == 8
+
+    calls = []
+    real = pipeline_mod.naka_rushton
+    monkeypatch.setattr(pipeline_mod, "naka_rushton", lambda *a, **k: calls.append(1) or real(*a, **k))
+    second = _dm(toy_scene, sigma=0.07)
+    t0 = time.perf_counter()
+    second.cached_train
+    warm = time.perf_counter() - t0
+    assert second.enhancer.last_run == {"computed": 0, "cached": 8, "seconds": pytest.approx(second.enhancer.last_run["seconds"])}
+    assert calls == [], "a cache hit must not recompute the response"
+    for a, b in zip(first.cached_train, second.cached_train):
+        assert torch.equal(a["image"], b["image"])
+    print(f"cold {cold:.3f} s, warm {warm:.3f} s")
+
+    third = _dm(toy_scene, sigma=0.05)
+    third.cached_train
+    assert third.enhancer.last_run["computed"] == 8 and len(calls) == 8
+
+
+def test_scene_stats_cache_key_covers_all_views(toy_scene):
+    dm = _dm(toy_scene, stats="scene")
+    images = [load_rgb(p).float() / 255.0 for p in dm.train_dataset.image_filenames]
+    want = naka_enhance(torch.stack(images), stats="scene")
+    got = torch.stack([d["image"] for d in dm.cached_train])
+    assert torch.allclose(got, want, atol=2e-5)
+    assert dm.enhancer.last_run["computed"] == 8
+
+
+def test_no_enhancement_baseline_passes_images_through(toy_scene):
+    dm = _dm(toy_scene, method="none")
+    for data, path in zip(dm.cached_train, dm.train_dataset.image_filenames):
+        assert torch.allclose(data["image"], load_rgb(path).float() / 255.0)
+
+
+def test_scene_without_test_images_trains_and_refuses_metrics(toy_scene, tmp_path):
+    scene = tmp_path / "scene"
+    shutil.copytree(toy_scene, scene)
+    shutil.rmtree(scene / "test")
+    dm = _dm(scene)
+    assert len(dm.cached_train) == 8
+    assert not dm.eval_dataset and len(dm.eval_dataset.cameras) == 2  # poses still load
+    with pytest.raises(MissingGroundTruthError, match="no ground-truth images"):
+        dm.next_eval_image(0)
+    with pytest.raises(MissingGroundTruthError):
+        dm.fixed_indices_eval_dataloader

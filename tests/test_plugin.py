@@ -1,0 +1,40 @@
+"""Plugin registration as a user sees it: ns-train lists naka-gs and its options."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+BIN = Path(sys.executable).parent
+
+
+def _run(*args):
+    env = dict(os.environ, TORCHDYNAMO_DISABLE="1")
+    return subprocess.run([str(BIN / args[0]), *args[1:]], capture_output=True, text=True, env=env, timeout=300)
+
+
+def test_ns_train_help_lists_naka_gs():
+    res = _run("ns-train", "--help")
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert "naka-gs" in res.stdout
+
+
+def test_naka_gs_help_exposes_enhancement_options():
+    res = _run("ns-train", "naka-gs", "--help")
+    assert res.returncode == 0, res.stderr[-2000:]
+    for option in ("--pipeline.datamanager.enhance.sigma", "--pipeline.datamanager.enhance.stats"):
+        assert option in res.stdout
+
+
+def test_method_config_is_cpu_safe_and_light():
+    code = (
+        "import sys, naka_gs_plugin.config as c;"
+        "m = c.naka_gs_method.config;"
+        "import torch;"
+        "assert m.method_name == 'naka-gs';"
+        "assert m.machine.device_type == ('cuda' if torch.cuda.is_available() else 'cpu');"
+        "assert 'nerfstudio.configs.method_configs' not in sys.modules;"
+        "assert not any(k.startswith(('open3d', 'kornia')) for k in sys.modules)"
+    )
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr[-2000:]
