@@ -1,0 +1,221 @@
+"""NakaGSModel: nerfstudio's splatfacto, rasterizing with gsplat on CUDA and our rasterizer elsewhere.
+
+Everything splatfacto does (parameters, L1 + SSIM loss, SH schedule, camera optimizer, bilateral
+grid, gsplat's DefaultStrategy densification, export) is inherited. Overridden, and only because
+stock splatfacto breaks on a CPU-only or offline machine:
+
+- ``populate_modules``: stock code calls ``.cuda()`` on seed colours and builds LPIPS eagerly
+  (downloads AlexNet; offline it raises). We keep the seed colours on the CPU and build LPIPS
+  lazily outside the module tree (:mod:`naka_gs_plugin.model.lpips`).
+- ``get_outputs``: stock code calls ``K.cuda()`` and gsplat's CUDA-only ``rasterization``. We
+  dispatch by device: gsplat for CUDA tensors, :func:`naka_gs_plugin.model.rasterize.rasterization`
+  otherwise (never by try/except around gsplat: each failed call re-attempts a CUDA JIT build).
+- ``get_image_metrics_and_images``: LPIPS is left out (not NaN) when its weights are unavailable,
+  so ``ns-eval`` JSON stays valid JSON.
+- training safety: a non-finite loss or parameter stops training with a clear message before
+  anything non-finite can reach a checkpoint.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, Literal, Optional, Tuple, Type, Union
+from unittest import mock
+
+import torch
+from jaxtyping import Float
+from nerfstudio.cameras.cameras import Cameras
+from nerfstudio.models.splatfacto import RGB2SH, SplatfactoModel, SplatfactoModelConfig
+from nerfstudio.utils.rich_utils import CONSOLE
+from torch import Tensor
+
+from naka_gs_plugin.model.lpips import LazyLPIPS
+
+
+class NonFiniteTrainingError(RuntimeError):
+    """Training produced NaN/Inf; raised before the bad state can be checkpointed."""
+
+
+@dataclass
+class NakaGSModelConfig(SplatfactoModelConfig):
+    """Splatfacto's options plus the rasterizer backend and an optional local LPIPS weights file."""
+
+    _target: Type = field(default_factory=lambda: NakaGSModel)
+    rasterizer: Literal["auto", "gsplat", "torch"] = "auto"
+    """auto: gsplat for CUDA tensors, our PyTorch rasterizer otherwise; gsplat needs CUDA."""
+    lpips_weights: Optional[Path] = None
+    """Local copy of torchvision's alexnet-owt-7be5be79.pth for LPIPS on offline machines."""
+
+
+def viewmat_from_c2w(c2w: Float[Tensor, "C 3 4"]) -> Float[Tensor, "C 4 4"]:
+    """OpenGL camera-to-world -> OpenCV world-to-camera (gsplat's ``viewmats``).
+
+    Splatfacto's own ``get_viewmat`` is wrapped in ``torch.compile``, which costs ~20 s per process
+    on a CPU for a 3x3 inverse; this is the same maths, uncompiled.
+    """
+    rot = c2w[:, :3, :3] * torch.tensor([1.0, -1.0, -1.0], device=c2w.device, dtype=c2w.dtype)
+    rot_inv = rot.transpose(1, 2)
+    viewmat = torch.zeros(c2w.shape[0], 4, 4, device=c2w.device, dtype=c2w.dtype)
+    viewmat[:, :3, :3] = rot_inv
+    viewmat[:, :3, 3] = -(rot_inv @ c2w[:, :3, 3:4]).squeeze(-1)
+    viewmat[:, 3, 3] = 1.0
+    return viewmat
+
+
+class NakaGSModel(SplatfactoModel):
+    """See the module docstring."""
+
+    config: NakaGSModelConfig
+
+    def populate_modules(self) -> None:
+        seed_rgb = None
+        if self.seed_points is not None and not self.config.random_init and self.seed_points[1].shape[0] > 0:
+            # Hide the colours from splatfacto (its colour branch calls .cuda()); set them below.
+            seed_rgb = self.seed_points[1]
+            self.seed_points = (self.seed_points[0], seed_rgb[:0])
+        # Splatfacto imports LPIPS inside populate_modules; swap in our lazy, fail-soft one there.
+        with mock.patch(
+            "torchmetrics.image.lpip.LearnedPerceptualImagePatchSimilarity",
+            lambda **_: LazyLPIPS(self.config.lpips_weights),
+        ):
+            super().populate_modules()
+        if seed_rgb is not None:
+            self.seed_points = (self.seed_points[0], seed_rgb)
+            rgb = seed_rgb.float() / 255.0
+            dc = RGB2SH(rgb) if self.config.sh_degree > 0 else torch.logit(rgb, eps=1e-10)
+            self.gauss_params["features_dc"].data.copy_(dc)
+        self._backend_logged: Optional[str] = None
+
+    # ------------------------------------------------------------------ rasterization
+    def _backend(self, device: torch.device) -> str:
+        choice = self.config.rasterizer
+        if choice == "auto":
+            choice = "gsplat" if device.type == "cuda" else "torch"
+        if choice == "gsplat" and device.type != "cuda":
+            raise ValueError(
+                f"rasterizer 'gsplat' needs CUDA tensors but the model is on {device} -- "
+                "use --pipeline.model.rasterizer torch (or auto)"
+            )
+        if choice != self._backend_logged:
+            CONSOLE.log(f"[naka-gs] rasterizer: {choice} (device {device}, config '{self.config.rasterizer}')")
+            self._backend_logged = choice
+        return choice
+
+    def _rasterize(self, device: torch.device, **kwargs):
+        if self._backend(device) == "gsplat":
+            from gsplat.rendering import rasterization as gsplat_rasterization
+
+            return gsplat_rasterization(packed=False, sparse_grad=False, **kwargs)
+        from naka_gs_plugin.model.rasterize import rasterization
+
+        return rasterization(**kwargs)
+
+    def get_outputs(self, camera: Cameras) -> Dict[str, Union[Tensor, list]]:
+        """Splatfacto's ``get_outputs`` with device-agnostic intrinsics and rasterizer dispatch."""
+        if not isinstance(camera, Cameras):
+            raise TypeError(f"get_outputs expects a Cameras object, got {type(camera).__name__}")
+        if self.training:
+            assert camera.shape[0] == 1, "Only one camera at a time"
+            optimized_camera_to_world = self.camera_optimizer.apply_to_camera(camera)
+        else:
+            optimized_camera_to_world = camera.camera_to_worlds
+
+        crop_ids = None
+        if self.crop_box is not None and not self.training:
+            crop_ids = self.crop_box.within(self.means).squeeze()
+            if crop_ids.sum() == 0:
+                return self.get_empty_outputs(int(camera.width.item()), int(camera.height.item()), self.background_color)
+        params = {
+            k: (v[crop_ids] if crop_ids is not None else v)
+            for k, v in (
+                ("opacities", self.opacities),
+                ("means", self.means),
+                ("features_dc", self.features_dc),
+                ("features_rest", self.features_rest),
+                ("scales", self.scales),
+                ("quats", self.quats),
+            )
+        }
+        colors = torch.cat((params["features_dc"][:, None, :], params["features_rest"]), dim=1)
+
+        camera_scale_fac = self._get_downscale_factor()
+        camera.rescale_output_resolution(1 / camera_scale_fac)
+        viewmat = viewmat_from_c2w(optimized_camera_to_world)
+        K = camera.get_intrinsics_matrices().to(self.device)
+        W, H = int(camera.width.item()), int(camera.height.item())
+        self.last_size = (H, W)
+        camera.rescale_output_resolution(camera_scale_fac)  # type: ignore
+
+        if self.config.rasterize_mode not in ["antialiased", "classic"]:
+            raise ValueError(f"Unknown rasterize_mode: {self.config.rasterize_mode}")
+        render_mode = "RGB+ED" if (self.config.output_depth_during_training or not self.training) else "RGB"
+        if self.config.sh_degree > 0:
+            sh_degree_to_use = min(self.step // self.config.sh_degree_interval, self.config.sh_degree)
+        else:
+            colors = torch.sigmoid(colors).squeeze(1)
+            sh_degree_to_use = None
+
+        render, alpha, self.info = self._rasterize(
+            self.means.device,
+            means=params["means"],
+            quats=params["quats"],
+            scales=torch.exp(params["scales"]),
+            opacities=torch.sigmoid(params["opacities"]).squeeze(-1),
+            colors=colors,
+            viewmats=viewmat,
+            Ks=K,
+            width=W,
+            height=H,
+            near_plane=0.01,
+            far_plane=1e10,
+            render_mode=render_mode,
+            sh_degree=sh_degree_to_use,
+            absgrad=self.strategy.absgrad,
+            rasterize_mode=self.config.rasterize_mode,
+        )
+        if self.training:
+            self.strategy.step_pre_backward(self.gauss_params, self.optimizers, self.strategy_state, self.step, self.info)
+
+        background = self._get_background_color()
+        rgb = torch.clamp(render[:, ..., :3] + (1 - alpha) * background, 0.0, 1.0)
+        if self.config.use_bilateral_grid and self.training:
+            if camera.metadata is not None and "cam_idx" in camera.metadata:
+                rgb = self._apply_bilateral_grid(rgb, camera.metadata["cam_idx"], H, W)
+        depth_im = None
+        if render_mode == "RGB+ED":
+            depth_im = render[:, ..., 3:4]
+            depth_im = torch.where(alpha > 0, depth_im, depth_im.detach().max()).squeeze(0)
+        if background.shape[0] == 3 and not self.training:
+            background = background.expand(H, W, 3)
+        return {"rgb": rgb.squeeze(0), "depth": depth_im, "accumulation": alpha.squeeze(0), "background": background}
+
+    # ------------------------------------------------------------------ safety and metrics
+    def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, Tensor]:
+        loss_dict = super().get_loss_dict(outputs, batch, metrics_dict)
+        bad = [k for k, v in loss_dict.items() if not torch.isfinite(v).all()]
+        if bad:
+            raise NonFiniteTrainingError(
+                f"non-finite loss ({', '.join(bad)}) at step {self.step}: training stopped before the optimizer "
+                "step; the last checkpoint is intact -- lower the learning rates or check the input images"
+            )
+        return loss_dict
+
+    def step_post_backward(self, step):
+        bad = [k for k, v in self.gauss_params.items() if not torch.isfinite(v).all()]
+        if bad:
+            raise NonFiniteTrainingError(
+                f"non-finite Gaussian parameters ({', '.join(bad)}) after step {step}: training stopped before "
+                "they could be checkpointed; the last checkpoint is intact -- lower the learning rates"
+            )
+        super().step_post_backward(step)
+
+    def get_image_metrics_and_images(
+        self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]
+    ) -> Tuple[Dict[str, float], Dict[str, Tensor]]:
+        metrics, images = super().get_image_metrics_and_images(outputs, batch)
+        for key in ("lpips", "cc_lpips"):
+            if key in metrics and not math.isfinite(metrics[key]):
+                del metrics[key]  # offline without weights: omit rather than write invalid JSON (NaN)
+        return metrics, images

@@ -1,0 +1,163 @@
+"""NakaGSModel in-process on CPU: backend choice, seeding, LPIPS, densification, NaN safety."""
+
+import math
+
+import pytest
+import torch
+from nerfstudio.data.scene_box import SceneBox
+from nerfstudio.models.splatfacto import RGB2SH
+
+from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig
+from naka_gs_plugin.enhance.cli import load_rgb
+from naka_gs_plugin.model.naka_gs_model import NakaGSModelConfig, NonFiniteTrainingError, viewmat_from_c2w
+
+
+def _model(n=400, seed_rgb=True, **overrides):
+    g = torch.Generator().manual_seed(0)
+    xyz = (torch.rand(n, 3, generator=g) - 0.5) * 1.2
+    rgb = (torch.rand(n, 3, generator=g) * 255).to(torch.uint8) if seed_rgb else torch.zeros(0, 3, dtype=torch.uint8)
+    cfg = NakaGSModelConfig(sh_degree=1, **overrides)
+    box = SceneBox(aabb=torch.tensor([[-1.0, -1, -1], [1, 1, 1]]))
+    return cfg.setup(scene_box=box, num_train_data=8, seed_points=(xyz, rgb)), xyz, rgb
+
+
+@pytest.fixture
+def frames(toy_scene):
+    out = LowLightDataParserConfig(data=toy_scene, downscale_factor=1).setup().get_dataparser_outputs("train")
+    images = [load_rgb(p).float() / 255.0 for p in out.image_filenames]
+    return out.cameras, images
+
+
+def test_seed_points_set_means_and_colours_on_cpu():
+    model, xyz, rgb = _model()
+    assert torch.equal(model.means.data, xyz)
+    assert torch.allclose(model.features_dc.data, RGB2SH(rgb.float() / 255.0))
+    assert model.means.device.type == "cpu"
+
+
+def test_lpips_is_outside_the_module_tree():
+    model, _, _ = _model()
+    assert not any("lpips" in k for k in model.state_dict())
+
+
+def test_auto_backend_is_torch_on_cpu_and_gsplat_on_cpu_is_refused(frames):
+    cameras, _ = frames
+    model, _, _ = _model()
+    model.eval()
+    with torch.no_grad():
+        out = model.get_outputs(cameras[0:1])
+    assert model._backend_logged == "torch"
+    assert out["rgb"].shape == (48, 64, 3) and torch.isfinite(out["rgb"]).all()
+    assert out["depth"].shape == (48, 64, 1)
+    forced, _, _ = _model(rasterizer="gsplat")
+    with pytest.raises(ValueError, match="needs CUDA"):
+        forced.get_outputs(cameras[0:1])
+
+
+def test_viewmat_is_the_inverse_of_the_opencv_pose():
+    g = torch.Generator().manual_seed(3)
+    q, _ = torch.linalg.qr(torch.randn(3, 3, generator=g))
+    c2w = torch.cat([q, torch.randn(3, 1, generator=g)], 1)[None]
+    opencv = torch.eye(4)[None].repeat(1, 1, 1)
+    opencv[:, :3, :4] = c2w
+    opencv[:, :3, 1:3] *= -1  # OpenGL (y up, -z forward) -> OpenCV (y down, +z forward)
+    assert torch.allclose(viewmat_from_c2w(c2w), torch.linalg.inv(opencv), atol=1e-5)
+
+
+def test_metrics_leave_out_lpips_when_weights_are_missing(frames, monkeypatch, tmp_path):
+    monkeypatch.setattr(torch.hub, "get_dir", lambda: str(tmp_path / "empty-hub"))
+    monkeypatch.setattr(
+        "torchvision.models._api.load_state_dict_from_url",
+        lambda *a, **k: (_ for _ in ()).throw(OSError("offline")),
+    )
+    cameras, images = frames
+    model, _, _ = _model()
+    model.eval()
+    with torch.no_grad():
+        outputs = model.get_outputs(cameras[0:1])
+    metrics, images_dict = model.get_image_metrics_and_images(outputs, {"image": images[0]})
+    assert "lpips" not in metrics and math.isfinite(metrics["psnr"]) and math.isfinite(metrics["ssim"])
+    assert "img" in images_dict
+
+
+def test_lpips_uses_a_local_weights_file(frames, tmp_path):
+    import torchvision
+
+    torch.manual_seed(0)
+    weights = tmp_path / "my_alexnet.pth"
+    torch.save(torchvision.models.alexnet().state_dict(), weights)
+    cameras, images = frames
+    model, _, _ = _model(lpips_weights=weights)
+    model.eval()
+    with torch.no_grad():
+        outputs = model.get_outputs(cameras[0:1])
+    metrics, _ = model.get_image_metrics_and_images(outputs, {"image": images[0]})
+    assert math.isfinite(metrics["lpips"])
+
+
+def _train(model, cameras, images, steps):
+    opts = {k: torch.optim.Adam([p], lr=1e-3) for k, p in model.gauss_params.items()}
+    model.train()
+    for step in range(steps):
+        model.step, model.optimizers = step, opts
+        i = step % len(images)
+        outputs = model.get_outputs(cameras[i : i + 1])
+        loss = model.get_loss_dict(outputs, {"image": images[i]})["main_loss"]
+        loss.backward()
+        for opt in opts.values():
+            opt.step()
+            opt.zero_grad()
+        model.step_post_backward(step)
+    return loss
+
+
+def test_densification_changes_the_gaussian_count_on_cpu(frames):
+    cameras, images = frames
+    # DefaultStrategy refines when step > warmup, step % refine_every == 0 and, after an opacity
+    # reset, only once num_train_data + refine_every steps have passed: first refinement at step 10.
+    model, _, _ = _model(warmup_length=2, refine_every=2, densify_grad_thresh=1e-8, densify_size_thresh=0.02)
+    grown = []
+    grow = model.strategy._grow_gs
+    model.strategy._grow_gs = lambda params, *a: grown.append((grow(params, *a), len(params["means"]))) or grown[-1][0]
+    before = model.num_points
+    _train(model, cameras, images, steps=11)
+    (n_dupli, n_split), after_grow = grown[0]
+    assert n_dupli + n_split > 0 and after_grow == before + n_dupli + n_split, "DefaultStrategy grew nothing on CPU"
+    assert model.num_points != before
+    assert model.strategy.absgrad and model.info["means2d"].absgrad is not None
+
+
+def test_non_finite_parameters_stop_training(frames):
+    cameras, images = frames
+    model, _, _ = _model()
+    _train(model, cameras, images, steps=1)
+    with torch.no_grad():
+        model.gauss_params["scales"][0, 0] = float("nan")
+    with pytest.raises(NonFiniteTrainingError, match="non-finite Gaussian parameters \\(scales\\)"):
+        model.step_post_backward(model.step)
+
+
+def test_non_finite_loss_stops_before_the_optimizer_step(frames):
+    cameras, images = frames
+    model, _, _ = _model()
+    model.train()
+    model.step, model.optimizers = 0, {}
+    outputs = model.get_outputs(cameras[0:1])
+    bad = images[0].clone()
+    bad[0, 0, 0] = float("nan")
+    with pytest.raises(NonFiniteTrainingError, match="non-finite loss"):
+        model.get_loss_dict(outputs, {"image": bad})
+
+
+def test_degenerate_gaussians_train_without_nan(frames):
+    cameras, images = frames
+    model, _, _ = _model(n=50)
+    with torch.no_grad():
+        model.gauss_params["scales"][:10] = -30.0  # ~zero extent
+        model.gauss_params["scales"][10:20] = 7.0  # ~1e3
+        model.gauss_params["quats"][20:30] = 0.0  # zero quaternion
+        model.gauss_params["opacities"][30:40] = 30.0
+        model.gauss_params["opacities"][40:50] = -30.0
+    loss = _train(model, cameras, images, steps=2)
+    assert torch.isfinite(loss)
+    assert all(torch.isfinite(p).all() for p in model.gauss_params.values())
