@@ -90,3 +90,13 @@ def test_scene_without_test_images_trains_and_refuses_metrics(toy_scene, tmp_pat
         dm.next_eval_image(0)
     with pytest.raises(MissingGroundTruthError):
         dm.fixed_indices_eval_dataloader
+
+
+def test_missing_test_images_render_as_placeholders_not_metrics(toy_scene, tmp_path):
+    scene = tmp_path / "scene"
+    shutil.copytree(toy_scene, scene)
+    shutil.rmtree(scene / "test")
+    dm = _dm(scene)
+    batch = dm.eval_dataset[1]  # what ns-render dataset reads: poses render, gt is a black placeholder
+    assert batch["image"].shape == (48, 64, 3) and batch["image"].abs().sum() == 0
+    assert batch["image_idx"] == 1

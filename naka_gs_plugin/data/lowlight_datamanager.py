@@ -30,11 +30,32 @@ class LowLightDataset(InputDataset):
     """An InputDataset that knows whether its split has ground-truth images.
 
     nerfstudio's trainer evaluates only ``if datamanager.eval_dataset:``; a split whose images are
-    missing is therefore falsy (its cameras still load, e.g. for rendering the test trajectory).
+    missing is therefore falsy. Its cameras still load, and ``ns-render dataset --split test
+    --rendered-output-names rgb`` renders the test views (e.g. a RealX3D challenge submission):
+    there, each missing image is a black placeholder, announced once.
     """
 
+    _warned = False
+
+    @property
+    def has_ground_truth(self) -> bool:
+        return bool(self._dataparser_outputs.metadata.get("has_ground_truth", True))
+
     def __bool__(self) -> bool:
-        return bool(self._dataparser_outputs.metadata.get("has_ground_truth", True)) and len(self) > 0
+        return self.has_ground_truth and len(self) > 0
+
+    def get_data(self, image_idx: int, image_type: Literal["uint8", "float32"] = "float32") -> Dict:
+        if self.has_ground_truth:
+            return super().get_data(image_idx, image_type)
+        if not LowLightDataset._warned:
+            CONSOLE.print(
+                "[bold yellow][naka-gs] this split has no ground-truth images: gt-* outputs are black placeholders"
+            )
+            LowLightDataset._warned = True
+        camera = self.cameras[image_idx]
+        shape = (int(camera.height.item()), int(camera.width.item()), 3)
+        dtype = torch.uint8 if image_type == "uint8" else torch.float32
+        return {"image_idx": image_idx, "image": torch.zeros(shape, dtype=dtype)}
 
 
 @dataclass
