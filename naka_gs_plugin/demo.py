@@ -49,14 +49,20 @@ class Demo:
             "psnr_enhanced_db": float(np.mean([psnr(e, t) for e, t in zip(enhanced, truth)])),
         }
         k = min(4, len(names))
-        sheet = contact_sheet([[im.numpy() for im in low[:k]], [im.numpy() for im in enhanced[:k]], [t.numpy() for t in truth[:k]]])
+        sheet = contact_sheet(
+            [[im.numpy() for im in low[:k]], [im.numpy() for im in enhanced[:k]], [t.numpy() for t in truth[:k]]]
+        )
         Image.fromarray(sheet).save(self.out / "before_after.png")
         (self.out / "report.json").write_text(json.dumps(report, indent=1))
         CONSOLE.print(
             f"[naka-gs demo] {report['views']} views, input mean {report['mean_input_brightness']:.3f}: "
-            f"PSNR vs truth {report['psnr_input_db']:.2f} dB (input) -> {report['psnr_enhanced_db']:.2f} dB (Naka)"
+            f"PSNR vs truth {report['psnr_input_db']:.2f} dB (input) -> {report['psnr_enhanced_db']:.2f} dB (Naka)",
+            markup=False,
         )
-        CONSOLE.print(f"[naka-gs demo] wrote {self.out / 'before_after.png'} (rows: input, enhanced, truth) and report.json")
+        CONSOLE.print(
+            f"[naka-gs demo] wrote {self.out / 'before_after.png'} (rows: input, enhanced, truth) and report.json",
+            markup=False,
+        )
         return report
 
 

@@ -19,4 +19,6 @@ def _isolated_cache(tmp_path, monkeypatch):
 @pytest.fixture(scope="session")
 def toy_scene(tmp_path_factory) -> Path:
     """8 train / 2 test views at 64x48 with truth; read-only by convention (copy to modify)."""
-    return write_toy_scene(tmp_path_factory.mktemp("toy") / "scene", ToySceneConfig(n_train=8, n_test=2, width=64, height=48))
+    return write_toy_scene(
+        tmp_path_factory.mktemp("toy") / "scene", ToySceneConfig(n_train=8, n_test=2, width=64, height=48)
+    )

@@ -53,7 +53,11 @@ def test_cache_hit_on_second_run_and_miss_when_sigma_changes(toy_scene, monkeypa
     t0 = time.perf_counter()
     second.cached_train
     warm = time.perf_counter() - t0
-    assert second.enhancer.last_run == {"computed": 0, "cached": 8, "seconds": pytest.approx(second.enhancer.last_run["seconds"])}
+    assert second.enhancer.last_run == {
+        "computed": 0,
+        "cached": 8,
+        "seconds": pytest.approx(second.enhancer.last_run["seconds"]),
+    }
     assert calls == [], "a cache hit must not recompute the response"
     for a, b in zip(first.cached_train, second.cached_train):
         assert torch.equal(a["image"], b["image"])

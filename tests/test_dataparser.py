@@ -60,7 +60,11 @@ def test_lom_scene_parses_with_distortion_and_ground_truth(scene):
 
 def test_auto_downscale_and_cached_copies(toy_scene, tmp_path):
     assert auto_downscale(1764, 1172) == 2 and auto_downscale(500, 375) == 1
-    out = LowLightDataParserConfig(data=toy_scene, downscale_factor=2, cache_dir=tmp_path).setup().get_dataparser_outputs("train")
+    out = (
+        LowLightDataParserConfig(data=toy_scene, downscale_factor=2, cache_dir=tmp_path)
+        .setup()
+        .get_dataparser_outputs("train")
+    )
     assert all(str(p).startswith(str(tmp_path)) for p in out.image_filenames)
     from PIL import Image
 

@@ -49,7 +49,9 @@ class LowLightDataset(InputDataset):
             return super().get_data(image_idx, image_type)
         if not LowLightDataset._warned:
             CONSOLE.print(
-                "[bold yellow][naka-gs] this split has no ground-truth images: gt-* outputs are black placeholders"
+                "[naka-gs] this split has no ground-truth images: gt-* outputs are black placeholders",
+                markup=False,
+                style="bold yellow",
             )
             LowLightDataset._warned = True
         camera = self.cameras[image_idx]

@@ -28,7 +28,7 @@ import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List, Literal, Optional, Tuple, Type
+from typing import List, Literal, Optional, Tuple, Type
 
 import torch
 from jaxtyping import Float
@@ -81,11 +81,15 @@ def _fail(path: Path, problem: str, fix: str) -> LowLightDataError:
 def load_transforms(path: Path) -> dict:
     """Read and validate a transforms json; raises :class:`LowLightDataError` naming the file."""
     if not path.exists():
-        raise _fail(path, "file not found", "every lowlight-data scene needs transforms_train.json and transforms_test.json")
+        raise _fail(
+            path, "file not found", "every lowlight-data scene needs transforms_train.json and transforms_test.json"
+        )
     try:
         meta = json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise _fail(path, f"malformed json ({err})", "fix the json syntax (e.g. check with `python -m json.tool`)") from None
+        raise _fail(
+            path, f"malformed json ({err})", "fix the json syntax (e.g. check with `python -m json.tool`)"
+        ) from None
     if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list):
         raise _fail(path, "no 'frames' list", "the file must be an object with a 'frames' list")
     return meta
@@ -106,7 +110,9 @@ def _intrinsic(meta: dict, frame: dict, key: str, path: Path) -> float:
 def _resolve_image(scene: Path, frame: dict, index: int, path: Path) -> Path:
     fp = frame.get("file_path")
     if not isinstance(fp, str) or not fp.strip():
-        raise _fail(path, f"frame {index} has no usable 'file_path' ({fp!r})", "set it to the image path relative to the scene")
+        raise _fail(
+            path, f"frame {index} has no usable 'file_path' ({fp!r})", "set it to the image path relative to the scene"
+        )
     candidate = (scene / fp).resolve() if not Path(fp).is_absolute() else Path(fp)
     if candidate.suffix == "" and not candidate.exists():  # Blender-style extensionless paths
         for suffix in _IMAGE_SUFFIXES:
@@ -119,7 +125,9 @@ def _pose(frame: dict, index: int, path: Path) -> Tensor:
     try:
         mat = torch.tensor(frame["transform_matrix"], dtype=torch.float64)
     except (KeyError, TypeError, ValueError):
-        raise _fail(path, f"frame {index} has no numeric 'transform_matrix'", "give a 4x4 camera-to-world matrix") from None
+        raise _fail(
+            path, f"frame {index} has no numeric 'transform_matrix'", "give a 4x4 camera-to-world matrix"
+        ) from None
     if mat.shape != (4, 4) or not torch.isfinite(mat).all():
         raise _fail(path, f"frame {index} 'transform_matrix' is not a finite 4x4", "give a 4x4 camera-to-world matrix")
     return mat
@@ -198,7 +206,9 @@ class LowLightDataParser(DataParser):
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
         scene = self.config.data
         if not scene.is_dir():
-            raise LowLightDataError(f"{scene}: scene folder not found -- pass --data <folder with transforms_train.json>")
+            raise LowLightDataError(
+                f"{scene}: scene folder not found -- pass --data <folder with transforms_train.json>"
+            )
         train = read_split(scene, "transforms_train.json")
         frames = train if split == "train" else read_split(scene, self._split_json(split))
         transform, scale = normalization(train.poses, self.config)
@@ -216,7 +226,8 @@ class LowLightDataParser(DataParser):
         if not has_gt:
             CONSOLE.log(
                 f"[naka-gs] {frames.json_path}: no ground-truth images for split '{split}' "
-                f"({len(present)} poses load; metrics that need ground truth are skipped)"
+                f"({len(present)} poses load; metrics that need ground truth are skipped)",
+                markup=False,
             )
         else:
             _check_sizes(frames)
@@ -260,10 +271,16 @@ def _check_sizes(frames: SplitFrames) -> None:
             with Image.open(path) as im:
                 size = im.size
         except OSError as err:
-            raise _fail(path, f"unreadable image ({err.__class__.__name__})", "replace it with a valid PNG/JPEG") from None
+            raise _fail(
+                path, f"unreadable image ({err.__class__.__name__})", "replace it with a valid PNG/JPEG"
+            ) from None
         want = (int(round(intr[4].item())), int(round(intr[5].item())))
         if size != want:
-            raise _fail(path, f"image is {size[0]}x{size[1]} but {frames.json_path.name} says {want[0]}x{want[1]}", "fix w/h in the json")
+            raise _fail(
+                path,
+                f"image is {size[0]}x{size[1]} but {frames.json_path.name} says {want[0]}x{want[1]}",
+                "fix w/h in the json",
+            )
 
 
 def downscaled_copy(path: Path, factor: int, cache_dir: Optional[Path] = None) -> Path:

@@ -70,12 +70,15 @@ class EnhanceCLI:
             Image.fromarray((image.numpy() * 255.0 + 0.5).astype(np.uint8)).save(dst)
             written.append(dst)
         h, w = images[0].shape[:2]
-        CONSOLE.log(f"[naka-gs] {len(images)} images of {w}x{h} in {seconds:.2f} s: {len(images) / seconds:.2f} images/s")
+        CONSOLE.log(
+            f"[naka-gs] {len(images)} images of {w}x{h} in {seconds:.2f} s: {len(images) / seconds:.2f} images/s",
+            markup=False,
+        )
         if self.sheet:
             k = min(self.sheet_views, len(images))
             sheet = contact_sheet([[im.numpy() for im in images[:k]], [im.numpy() for im in enhanced[:k]]])
             Image.fromarray(sheet).save(self.out / "before_after.png")
-            CONSOLE.log(f"[naka-gs] wrote {self.out / 'before_after.png'}")
+            CONSOLE.log(f"[naka-gs] wrote {self.out / 'before_after.png'}", markup=False)
         return written
 
 

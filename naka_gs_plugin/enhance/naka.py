@@ -50,7 +50,7 @@ def linear_stretch(
 ) -> Float[Tensor, "*batch H W C"]:
     """Map ``[lo, hi]`` linearly to ``[0, 1]`` (clipped); all zeros where ``hi - lo < RANGE_EPS``."""
     lo = lo[..., None, None, None]
-    span = (hi[..., None, None, None] - lo)
+    span = hi[..., None, None, None] - lo
     stretched = ((response - lo) / span.clamp(min=RANGE_EPS)).clamp(0.0, 1.0)
     return torch.where(span >= RANGE_EPS, stretched, torch.zeros_like(stretched))
 

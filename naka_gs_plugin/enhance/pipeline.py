@@ -135,7 +135,9 @@ class Enhancer:
                 # The pooled statistics need every view, cached or not.
                 lo_scene, hi_scene = self._scene_stats(images)
             with _progress() as progress:
-                task = progress.add_task(f"{description} ({self.config.method}, {self.config.stats} stats)", total=len(todo))
+                task = progress.add_task(
+                    f"{description} ({self.config.method}, {self.config.stats} stats)", total=len(todo)
+                )
                 for i in todo:
                     response = naka_rushton(to_float01(images[i]), self.config.sigma, self.config.n)
                     lo, hi = stretch_stats(response)
@@ -149,13 +151,16 @@ class Enhancer:
         self.last_run = {"computed": len(todo), "cached": len(images) - len(todo), "seconds": seconds}
         CONSOLE.log(
             f"[naka-gs] {description}: {len(images)} images, {len(todo)} computed, "
-            f"{len(images) - len(todo)} from cache ({self.cache_dir}) in {seconds:.2f} s"
+            f"{len(images) - len(todo)} from cache ({self.cache_dir}) in {seconds:.2f} s",
+            markup=False,
         )
         return [o for o in out if o is not None]
 
     def _scene_stats(self, images: Sequence[Tensor]) -> tuple[Tensor, Tensor]:
         """Pooled min/max of the Naka response over all views (views may differ in size)."""
-        los, his = zip(*(stretch_stats(naka_rushton(to_float01(im), self.config.sigma, self.config.n)) for im in images))
+        los, his = zip(
+            *(stretch_stats(naka_rushton(to_float01(im), self.config.sigma, self.config.n)) for im in images)
+        )
         return torch.stack(los).amin(), torch.stack(his).amax()
 
 

@@ -53,10 +53,6 @@ class LazyLPIPS:
             finally:
                 torch.hub.set_dir(previous)
 
-    @property
-    def available(self) -> bool:
-        return self._unavailable is None
-
     def __call__(self, a: Float[Tensor, "B 3 H W"], b: Float[Tensor, "B 3 H W"]) -> float:
         if self._unavailable is not None:
             return math.nan
@@ -66,9 +62,11 @@ class LazyLPIPS:
             except Exception as err:  # URLError offline, missing/corrupt file: the metric is optional
                 self._unavailable = f"{err.__class__.__name__}: {err}"
                 CONSOLE.print(
-                    f"[bold yellow][naka-gs] LPIPS skipped: its AlexNet weights ({ALEXNET_FILE}) are not available "
+                    f"[naka-gs] LPIPS skipped: its AlexNet weights ({ALEXNET_FILE}) are not available "
                     f"({self._unavailable}). Put the file in {torch.hub.get_dir()}/checkpoints or pass "
-                    "--pipeline.model.lpips-weights PATH."
+                    "--pipeline.model.lpips-weights PATH.",
+                    markup=False,
+                    style="bold yellow",
                 )
                 return math.nan
         self._metric = self._metric.to(a.device)

@@ -99,7 +99,9 @@ class NakaGSModel(SplatfactoModel):
                 "use --pipeline.model.rasterizer torch (or auto)"
             )
         if choice != self._backend_logged:
-            CONSOLE.log(f"[naka-gs] rasterizer: {choice} (device {device}, config '{self.config.rasterizer}')")
+            CONSOLE.log(
+                f"[naka-gs] rasterizer: {choice} (device {device}, config '{self.config.rasterizer}')", markup=False
+            )
             self._backend_logged = choice
         return choice
 
@@ -126,7 +128,9 @@ class NakaGSModel(SplatfactoModel):
         if self.crop_box is not None and not self.training:
             crop_ids = self.crop_box.within(self.means).squeeze()
             if crop_ids.sum() == 0:
-                return self.get_empty_outputs(int(camera.width.item()), int(camera.height.item()), self.background_color)
+                return self.get_empty_outputs(
+                    int(camera.width.item()), int(camera.height.item()), self.background_color
+                )
         params = {
             k: (v[crop_ids] if crop_ids is not None else v)
             for k, v in (
@@ -176,7 +180,9 @@ class NakaGSModel(SplatfactoModel):
             rasterize_mode=self.config.rasterize_mode,
         )
         if self.training:
-            self.strategy.step_pre_backward(self.gauss_params, self.optimizers, self.strategy_state, self.step, self.info)
+            self.strategy.step_pre_backward(
+                self.gauss_params, self.optimizers, self.strategy_state, self.step, self.info
+            )
 
         background = self._get_background_color()
         rgb = torch.clamp(render[:, ..., :3] + (1 - alpha) * background, 0.0, 1.0)
