@@ -94,9 +94,7 @@ def quat_to_rotmat(quats: Float[Tensor, "*batch 4"]) -> Float[Tensor, "*batch 3 
     return rot.reshape(quats.shape[:-1] + (3, 3))
 
 
-def quat_scale_to_covar(
-    quats: Float[Tensor, "N 4"], scales: Float[Tensor, "N 3"]
-) -> Float[Tensor, "N 3 3"]:
+def quat_scale_to_covar(quats: Float[Tensor, "N 4"], scales: Float[Tensor, "N 3"]) -> Float[Tensor, "N 3 3"]:
     """World-space covariance ``R S S^T R^T`` from ``wxyz`` quaternions and (exp'ed) scales."""
     m = quat_to_rotmat(quats) * scales[..., None, :]
     return m @ m.transpose(-1, -2)
@@ -146,9 +144,9 @@ def project_gaussians(
     ty = z * torch.clamp(y / z, min=-lim_y_neg, max=lim_y_pos)
 
     zeros = torch.zeros_like(z)
-    jac = torch.stack(
-        [fx / z, zeros, -fx * tx / (z * z), zeros, fy / z, -fy * ty / (z * z)], dim=-1
-    ).reshape(z.shape + (2, 3))
+    jac = torch.stack([fx / z, zeros, -fx * tx / (z * z), zeros, fy / z, -fy * ty / (z * z)], dim=-1).reshape(
+        z.shape + (2, 3)
+    )
     cov2d = jac @ covars_c @ jac.transpose(-1, -2)
     means2d = torch.stack([fx * x / z + cx, fy * y / z + cy], dim=-1)
 

@@ -20,8 +20,9 @@ span of the ellipse on that row (a slightly lenient bound, the exact test is app
 Items are grouped into bands of rows holding at most ``max_pairs_per_chunk`` pairs. Per band the
 pairs are generated, stable-sorted by pixel (keeping depth order), and composited with a segmented
 float64 cumulative sum of ``log(1 - alpha)``. Only the contributing pairs (their Gaussian, pixel
-and transmittance) are kept for the backward pass, which re-walks the same bands with a
-hand-written gradient, so peak memory is bounded by the band size, not pixels x Gaussians.
+and transmittance: 12 bytes each in float32) are kept for the backward pass, which re-walks the
+same bands with a hand-written gradient (including gsplat's per-pair ``absgrad``), so the other
+temporaries are bounded by the band size, never pixels x Gaussians.
 """
 
 from __future__ import annotations
@@ -44,12 +45,15 @@ LOG_TRANSMITTANCE_MIN = math.log(TRANSMITTANCE_MIN)
 TILE_SIZE = 16
 """Reported in ``meta`` for gsplat compatibility; this rasterizer does not use tiles."""
 
-DEFAULT_MAX_PAIRS_PER_CHUNK = 1 << 21
-"""Gaussian-pixel pairs per band; ~100 bytes of temporaries per pair in the forward pass."""
+DEFAULT_MAX_PAIRS_PER_CHUNK = 1 << 17
+"""Gaussian-pixel pairs per band (~100 bytes of temporaries each). Small bands keep the working
+set in cache and let the allocator reuse memory; larger bands only save Python overhead."""
 
 _ENUM_SLACK = 1e-3
-"""Relative slack on the ``alpha >= 1/255`` ellipse used to enumerate pairs, so that rounding can
-only add candidates (rejected by the exact per-pair test), never drop a valid one."""
+"""Relative slack on the ``alpha >= 1/255`` ellipse used to enumerate pairs, so that rounding adds
+candidates (rejected by the exact per-pair test) instead of dropping valid ones. The bound is
+computed in float64; only a float32 sigma with extreme cancellation (anisotropy ~1e4) could
+still differ from it, for pixels whose alpha is within rounding of 1/255."""
 
 RenderMode = Literal["RGB", "D", "ED", "RGB+D", "RGB+ED"]
 Compositor = Callable[..., Tuple[Tensor, Tensor]]
@@ -93,53 +97,50 @@ def _plan_pairs(
     n_cams, n = radii.shape
     flat_opac = opacities.reshape(-1)
     entries = torch.nonzero((radii.reshape(-1) > 0) & (flat_opac >= ALPHA_MIN)).squeeze(1)
-    entries = entries[torch.argsort(depths.reshape(-1)[entries], stable=True)]
+    entries = entries.index_select(0, torch.argsort(depths.reshape(-1).index_select(0, entries), stable=True))
 
-    box = pixel_bounds(means2d, radii, width, height).reshape(-1, 4)[entries]
-    mean = means2d.reshape(-1, 2)[entries].double()
-    con = conics.reshape(-1, 3)[entries].double()
-    ca, cb, cc = con.unbind(-1)
-    # alpha >= 1/255  <=>  sigma <= log(255 * opacity); sigma = 0.5 d^T conic d.
-    level = torch.log(255.0 * flat_opac[entries].double())
+    box = pixel_bounds(means2d, radii, width, height).reshape(-1, 4).index_select(0, entries)
+    mx, my = means2d.reshape(-1, 2).index_select(0, entries).double().unbind(-1)
+    ca, cb, cc = conics.reshape(-1, 3).index_select(0, entries).double().unbind(-1)
+    # alpha >= 1/255  <=>  sigma <= log(255 * opacity), sigma = 0.5 d^T conic d: an ellipse.
+    level = torch.log(255.0 * flat_opac.index_select(0, entries).double())
     level = level * (1.0 + _ENUM_SLACK) + _ENUM_SLACK
     det_con = ca * cc - cb * cb
-    inf = torch.tensor(math.inf, dtype=torch.float64, device=device)
     half_h = torch.nan_to_num(torch.sqrt(2.0 * level * ca / det_con), nan=math.inf)
-    y_lo = torch.maximum(torch.ceil(mean[:, 1] - half_h - 0.5), box[:, 2].double()).long()
-    y_hi = torch.minimum(torch.floor(mean[:, 1] + half_h - 0.5), box[:, 3].double()).long()
-    n_rows = (y_hi - y_lo + 1).clamp(min=0)
+    y_lo = torch.maximum(torch.ceil(my - half_h - 0.5), box[:, 2].double())
+    y_hi = torch.minimum(torch.floor(my + half_h - 0.5), box[:, 3].double())
+    n_rows = (y_hi - y_lo + 1).clamp(min=0).long()
 
-    # (Gaussian, row) items, Gaussian-major in depth order.
+    # (Gaussian, row) items, Gaussian-major in depth order, with the ellipse's columns on the row.
     pos = torch.repeat_interleave(torch.arange(len(entries), device=device), n_rows)
-    row_in = torch.arange(len(pos), device=device) - (torch.cumsum(n_rows, 0) - n_rows)[pos]
-    y = y_lo[pos] + row_in
-    dy = mean[pos, 1] - (y.double() + 0.5)
-    a, b, c = ca[pos], cb[pos], cc[pos]
-    disc = 2.0 * a * level[pos] - dy * dy * det_con[pos]
+    per_entry = torch.stack(
+        [mx, my, ca, cb, cc, level, det_con, box[:, 0].double(), box[:, 1].double(), y_lo], dim=1
+    ).index_select(0, pos)
+    mx, my, a, b, c, level, det_con, box_x_lo, box_x_hi, y_lo = per_entry.unbind(-1)
+    first_row_item = (torch.cumsum(n_rows, 0) - n_rows).index_select(0, pos)
+    y = y_lo + (torch.arange(len(pos), device=device) - first_row_item).double()
+    dy = my - (y + 0.5)
+    disc = 2.0 * a * level - dy * dy * det_con
     root = torch.sqrt(disc.clamp(min=0.0))
     t_lo = torch.nan_to_num((-b * dy - root) / a, nan=-math.inf)
     t_hi = torch.nan_to_num((-b * dy + root) / a, nan=math.inf)
-    mx = mean[pos, 0]
-    x_lo = torch.maximum(torch.ceil(mx - t_hi - 0.5), box[pos, 0].double())
-    x_hi = torch.minimum(torch.floor(mx - t_lo - 0.5), box[pos, 1].double())
-    x_lo = torch.where(disc >= 0, x_lo, inf).clamp(max=width).long()
-    x_hi = x_hi.long()
-    n_cols = (x_hi - x_lo + 1).clamp(min=0)
+    x_lo = torch.maximum(torch.ceil(mx - t_hi - 0.5), box_x_lo)
+    x_hi = torch.minimum(torch.floor(mx - t_lo - 0.5), box_x_hi)
+    n_cols = torch.where(disc >= 0, x_hi - x_lo + 1, torch.zeros_like(x_hi)).clamp(min=0)
 
-    keep = n_cols > 0
-    pos, y, x_lo, n_cols, dy = pos[keep], y[keep], x_lo[keep], n_cols[keep], dy[keep]
-    entry = entries[pos]
-    global_row = torch.div(entry, n, rounding_mode="floor") * height + y
-    order = torch.argsort(global_row, stable=True)
-    entry, global_row, x_lo, n_cols, dy = (t[order] for t in (entry, global_row, x_lo, n_cols, dy))
-    dx0 = means2d.reshape(-1, 2)[entry, 0] - (x_lo.to(means2d.dtype) + 0.5)
+    entry = entries.index_select(0, pos)
+    global_row = torch.div(entry, n, rounding_mode="floor") * height + y.long()
+    keep = torch.nonzero(n_cols > 0).squeeze(1)
+    keep = keep.index_select(0, torch.argsort(global_row.index_select(0, keep), stable=True))
+    entry, global_row = entry.index_select(0, keep), global_row.index_select(0, keep)
+    x_lo, n_cols = x_lo.index_select(0, keep), n_cols.index_select(0, keep).long()
+    dx0 = mx.index_select(0, keep) - (x_lo + 0.5)
+    dy = dy.index_select(0, keep)
 
     n_global_rows = n_cams * height
     row_pairs = torch.zeros(n_global_rows, dtype=torch.int64, device=device)
     row_pairs.index_add_(0, global_row, n_cols)
-    row_first_item = torch.searchsorted(
-        global_row, torch.arange(n_global_rows + 1, device=device)
-    ).tolist()
+    row_first_item = torch.searchsorted(global_row, torch.arange(n_global_rows + 1, device=device)).tolist()
     bands: List[_Band] = []
     start, acc = 0, 0
     for row, count in enumerate(row_pairs.tolist()):
@@ -148,14 +149,12 @@ def _plan_pairs(
             start, acc = row, 0
         acc += count
     if acc > 0:
-        bands.append(
-            _Band(row_first_item[start], row_first_item[n_global_rows], start, n_global_rows, acc)
-        )
+        bands.append(_Band(row_first_item[start], row_first_item[n_global_rows], start, n_global_rows, acc))
     return _PairPlan(
         entry=entry,
-        pix_base=global_row * width + x_lo,
+        pix_base=global_row * width + x_lo.long(),
         n_cols=n_cols,
-        dx0=dx0,
+        dx0=dx0.to(means2d.dtype),
         dy=dy.to(means2d.dtype),
         bands=bands,
     )
@@ -185,9 +184,7 @@ class _SparseComposite(torch.autograd.Function):
         n_cams, n, dim = colors.shape
         dtype, device = colors.dtype, colors.device
         n_pix = n_cams * height * width
-        geom = torch.cat(
-            [conics.reshape(-1, 3), opacities.reshape(-1, 1)], dim=1
-        )  # [E, 4]: a, b, c, opacity
+        geom = torch.cat([conics.reshape(-1, 3), opacities.reshape(-1, 1)], dim=1)  # [E, 4]: a, b, c, opacity
         flat_colors = colors.reshape(-1, dim)
         out = torch.zeros(n_pix, dim, dtype=dtype, device=device)
         log_t_final = torch.zeros(n_pix, dtype=torch.float64, device=device)
@@ -201,13 +198,9 @@ class _SparseComposite(torch.autograd.Function):
             entry_items = plan.entry[items]
             first = torch.cumsum(n_cols, 0) - n_cols
             # Per item: (dx0, dy, a, b, c, opacity) and (entry, key of column 0 minus first, first).
-            ftab = torch.cat(
-                [plan.dx0[items, None], plan.dy[items, None], geom.index_select(0, entry_items)], 1
-            )
+            ftab = torch.cat([plan.dx0[items, None], plan.dy[items, None], geom.index_select(0, entry_items)], 1)
             itab = torch.stack([entry_items, plan.pix_base[items] - pix0 - first, first], 1)
-            item = torch.repeat_interleave(
-                torch.arange(len(n_cols), device=device), n_cols, output_size=band.n_pairs
-            )
+            item = torch.repeat_interleave(torch.arange(len(n_cols), device=device), n_cols, output_size=band.n_pairs)
             f = ftab.index_select(0, item)
             it = itab.index_select(0, item)
             arange = torch.arange(band.n_pairs, device=device)
@@ -226,14 +219,21 @@ class _SparseComposite(torch.autograd.Function):
             before = torch.cat([csum.new_zeros(1), csum]).index_select(0, torch.cumsum(counts, 0) - counts)
             log_t_incl = csum - before.index_select(0, key)
             contrib = torch.nonzero((alpha > 0) & (log_t_incl > LOG_TRANSMITTANCE_MIN)).squeeze(1)
+            if len(contrib) == 0:  # only lenient-bound candidates below 1/255 in this band
+                continue
 
             entry, key = entry.index_select(0, contrib), key.index_select(0, contrib)
             alpha, log_1m = alpha.index_select(0, contrib), log_1m.index_select(0, contrib)
-            trans = torch.exp(log_t_incl.index_select(0, contrib) - log_1m).to(dtype)
+            log_t_incl = log_t_incl.index_select(0, contrib)
+            trans = torch.exp(log_t_incl - log_1m).to(dtype)
             weight = alpha * trans
-            band_out = weight[:, None] * flat_colors.index_select(0, entry)
-            out[pix0 : pix0 + n_band_pix].index_add_(0, key, band_out)
-            log_t_final[pix0 : pix0 + n_band_pix].index_add_(0, key, log_1m)
+            # Pairs are grouped by pixel: sum per segment; T_final is T after a pixel's last pair.
+            counts = torch.bincount(key, minlength=n_band_pix)
+            out[pix0 : pix0 + n_band_pix] = torch.segment_reduce(
+                weight[:, None] * flat_colors.index_select(0, entry), "sum", lengths=counts, axis=0
+            )
+            last = (torch.cumsum(counts, 0) - 1).clamp(min=0)
+            log_t_final[pix0 : pix0 + n_band_pix] = torch.where(counts > 0, log_t_incl.index_select(0, last), 0.0)
 
             kept_entry.append(entry.to(torch.int32))
             kept_pix.append(key + pix0)
@@ -265,9 +265,7 @@ class _SparseComposite(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad_colors: Tensor, grad_alphas: Tensor):
-        (means2d, conics, opacities, colors, backgrounds, t_final, p_entry, p_pix, p_trans) = (
-            ctx.saved_tensors
-        )
+        (means2d, conics, opacities, colors, backgrounds, t_final, p_entry, p_pix, p_trans) = ctx.saved_tensors
         width, height = ctx.image_size
         n_cams, n, dim = colors.shape
         dtype, device = colors.dtype, colors.device
@@ -393,9 +391,7 @@ def rasterize_to_pixels_sparse(
         height,
         max_pairs_per_chunk,
     )
-    return _SparseComposite.apply(
-        means2d, conics, opacities, colors, backgrounds, plan, width, height, absgrad
-    )
+    return _SparseComposite.apply(means2d, conics, opacities, colors, backgrounds, plan, width, height, absgrad)
 
 
 def rasterization_with_compositor(
@@ -403,7 +399,7 @@ def rasterization_with_compositor(
     means: Float[Tensor, "N 3"],
     quats: Float[Tensor, "N 4"],
     scales: Float[Tensor, "N 3"],
-    opacities: Float[Tensor, "N"],
+    opacities: Float[Tensor, " N"],
     colors: Tensor,
     viewmats: Float[Tensor, "C 4 4"],
     Ks: Float[Tensor, "C 3 3"],
@@ -501,7 +497,7 @@ def rasterization(
     means: Float[Tensor, "N 3"],
     quats: Float[Tensor, "N 4"],
     scales: Float[Tensor, "N 3"],
-    opacities: Float[Tensor, "N"],
+    opacities: Float[Tensor, " N"],
     colors: Tensor,
     viewmats: Float[Tensor, "C 4 4"],
     Ks: Float[Tensor, "C 3 3"],
@@ -530,9 +526,7 @@ def rasterization(
     ``height``, ``n_cameras``, ``gaussian_ids=None``, ``camera_ids=None``, ``tile_size``.
     Colours are linear and not clamped. Works on CPU and CUDA tensors, float32 or float64.
     """
-    compositor = partial(
-        rasterize_to_pixels_sparse, absgrad=absgrad, max_pairs_per_chunk=max_pairs_per_chunk
-    )
+    compositor = partial(rasterize_to_pixels_sparse, absgrad=absgrad, max_pairs_per_chunk=max_pairs_per_chunk)
     return rasterization_with_compositor(
         compositor,
         means,
