@@ -42,8 +42,10 @@ class Demo:
     out: Path = Path("outputs/demo")
     scene: ToySceneConfig = field(default_factory=lambda: ToySceneConfig(n_train=16, n_test=4, width=160, height=120))
     enhance: EnhanceConfig = field(default_factory=EnhanceConfig)
-    steps: int = 1000
-    """Training steps (0: enhancement only)."""
+    steps: int = 500
+    """Training steps (0: enhancement only). Measured on 2 CPU cores: 500 steps, 62 s, test PSNR
+    14.6 dB; 1000 steps fit the noise Naka amplifies (86k Gaussians, 11.6 dB) until the correction
+    network and PPM seeding land."""
 
     def main(self) -> dict:
         scene_dir = write_toy_scene(self.out / "scene", self.scene)
