@@ -1,13 +1,17 @@
 """``naka-gs-demo``: the README's main job on the embedded default scene (no downloads).
 
-1. generates the toy low-light scene with known truth (:mod:`naka_gs_plugin.sim.toy_scene`);
+1. generates the default procedural low-light scene from ``configs/scenes/dark-noisy.yaml``
+   (:mod:`naka_gs_plugin.sim`: rendered by our rasterizer, known normal-light truth);
 2. enhances its training views as ``ns-train naka-gs`` does and scores input and enhanced images
-   against the normal-light truth (PSNR, dB), writing a before/after/truth contact sheet;
-3. trains ``naka-gs`` on it (nerfstudio's own training loop, in-process, CPU or CUDA) and evaluates
-   the held-out test views against their truth, as ``ns-eval`` would.
+   against the truth (PSNR, dB);
+3. trains ``naka-gs`` on it (nerfstudio's own training loop, in-process, CPU or CUDA) and, as the
+   baseline, the same model with enhancement off (plain splatfacto on the raw low-light images);
+4. evaluates both on the held-out test views against their truth, as ``ns-eval`` would.
 
-Outputs land in ``--out``: ``before_after.png``, ``test_renders.png`` (rows: render, truth),
-``report.json`` and the nerfstudio run folder (``ns-viewer --load-config <out>/run/.../config.yml``).
+Outputs in ``--out``: ``side_by_side.png`` (rows: low-light input, enhanced, naka-gs render,
+baseline render, truth; training views), ``test_renders.png`` (rows: naka-gs, baseline, truth;
+test views), ``report.json``, the scene and the nerfstudio run folders
+(``ns-viewer --load-config <out>/run/demo/naka-gs/naka-gs/config.yml``).
 """
 
 from __future__ import annotations
@@ -17,7 +21,7 @@ import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import Dict, List, Optional, Sequence
 
 import numpy as np
 import torch
@@ -25,55 +29,68 @@ import tyro
 from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 
-from naka_gs_plugin.enhance.cli import contact_sheet, load_rgb
+from naka_gs_plugin.enhance.cli import contact_sheet
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
-from naka_gs_plugin.sim.toy_scene import ToySceneConfig, write_toy_scene
+from naka_gs_plugin.sim.effects import read_image
+from naka_gs_plugin.sim.generate import generate
+from naka_gs_plugin.sim.spec import load_spec
+
+DEFAULT_SPEC = Path(__file__).resolve().parents[1] / "configs" / "scenes" / "dark-noisy.yaml"
 
 
 def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
     """PSNR in dB between two float images in [0, 1]."""
-    return float(-10.0 * torch.log10(((a - b) ** 2).mean().clamp(min=1e-12)))
+    return float(-10.0 * torch.log10(((a.float() - b.float()) ** 2).mean().clamp(min=1e-12)))
 
 
 @dataclass
 class Demo:
-    """Generate the toy low-light scene, enhance it, train naka-gs on it, evaluate against the truth."""
+    """Simulate a low-light scene, train naka-gs and the plain baseline on it, evaluate against the truth."""
 
     out: Path = Path("outputs/demo")
-    scene: ToySceneConfig = field(default_factory=lambda: ToySceneConfig(n_train=16, n_test=4, width=160, height=120))
+    spec: Path = DEFAULT_SPEC
+    """Scene spec (configs/scenes/*.yaml)."""
     enhance: EnhanceConfig = field(default_factory=EnhanceConfig)
     steps: int = 500
-    """Training steps (0: enhancement only). Measured on 2 CPU cores: 500 steps, 62 s, test PSNR
-    14.6 dB; 1000 steps fit the noise Naka amplifies (86k Gaussians, 11.6 dB) until the correction
-    network and PPM seeding land."""
+    """Training steps per model (0: enhancement only)."""
+    baseline: bool = True
+    """Also train the same model with enhancement off on the same low-light images."""
+    sheet_views: int = 4
 
     def main(self) -> dict:
-        scene_dir = write_toy_scene(self.out / "scene", self.scene)
-        report = self._enhance(scene_dir)
-        if self.steps > 0:
-            report.update(self._train_and_eval(scene_dir))
-        (self.out / "report.json").write_text(json.dumps(report, indent=1))
-        CONSOLE.print(f"[naka-gs demo] {json.dumps(report)}", markup=False)
-        CONSOLE.print(f"[naka-gs demo] wrote {self.out}/before_after.png, test_renders.png, report.json", markup=False)
-        return report
-
-    def _enhance(self, scene_dir: Path) -> dict:
-        names = sorted(p.name for p in (scene_dir / "train").glob("*.png"))
-        low = [load_rgb(scene_dir / "train" / n) for n in names]
-        truth = [load_rgb(scene_dir / "train_gt" / n).float() / 255.0 for n in names]
-        enhanced = Enhancer(self.enhance).enhance_images(low, description="Enhancing toy scene")
-        k = min(4, len(names))
-        rows = [[im.numpy() for im in low[:k]], [im.numpy() for im in enhanced[:k]], [t.numpy() for t in truth[:k]]]
-        Image.fromarray(contact_sheet(rows)).save(self.out / "before_after.png")
-        return {
+        scene_dir = generate(load_spec(self.spec), self.out / "scene")
+        names = sorted(p.name for p in (scene_dir / "train").iterdir())
+        low = [torch.from_numpy(read_image(scene_dir / "train" / n)).float() for n in names]
+        truth = [torch.from_numpy(read_image(scene_dir / "train_gt" / n)).float() for n in names]
+        enhanced = Enhancer(self.enhance).enhance_images(low, description="Enhancing demo scene")
+        report: Dict = {
+            "scene": str(scene_dir),
             "train_views": len(names),
-            "mean_input_brightness": float(np.mean([im.float().mean() / 255.0 for im in low])),
-            "psnr_input_vs_truth_db": float(np.mean([psnr(lo.float() / 255.0, t) for lo, t in zip(low, truth)])),
+            "mean_input_brightness": float(np.mean([im.mean() for im in low])),
+            "psnr_input_vs_truth_db": float(np.mean([psnr(a, t) for a, t in zip(low, truth)])),
             "psnr_enhanced_vs_truth_db": float(np.mean([psnr(e, t) for e, t in zip(enhanced, truth)])),
         }
+        k = min(self.sheet_views, len(names))
+        rows = [[im.numpy() for im in low[:k]], [im.numpy() for im in enhanced[:k]]]
+        if self.steps > 0:
+            runs = {"naka-gs": self.enhance}
+            if self.baseline:
+                runs["baseline"] = EnhanceConfig(method="none")
+            test_rows = []
+            for name, enhance in runs.items():
+                metrics, train_renders, test_renders, test_truth = self._train_and_eval(scene_dir, name, enhance, k)
+                report[name] = metrics
+                rows.append(train_renders)
+                test_rows.append(test_renders)
+            Image.fromarray(contact_sheet(test_rows + [test_truth])).save(self.out / "test_renders.png")
+        rows.append([t.numpy() for t in truth[:k]])
+        Image.fromarray(contact_sheet(rows)).save(self.out / "side_by_side.png")
+        (self.out / "report.json").write_text(json.dumps(report, indent=1))
+        self._print(report)
+        return report
 
-    def _train_and_eval(self, scene_dir: Path) -> dict:
-        # Imported here: nerfstudio's training stack is heavy and step 2 does not need it.
+    def _train_and_eval(self, scene_dir: Path, name: str, enhance: EnhanceConfig, k: int):
+        # Imported here: nerfstudio's training stack is heavy and the enhancement step does not need it.
         from nerfstudio.scripts.train import main as train_main
         from nerfstudio.utils.eval_utils import eval_setup
 
@@ -82,16 +99,16 @@ class Demo:
         config = copy.deepcopy(naka_gs_method.config)
         config.data = scene_dir
         config.output_dir = self.out / "run"
-        config.experiment_name = "toy"
-        config.timestamp = "demo"
+        config.experiment_name = "demo"
+        config.timestamp = name
         config.max_num_iterations = self.steps
         config.steps_per_save = self.steps
         config.vis = "tensorboard"
         config.viewer.quit_on_train_completion = True
-        config.pipeline.datamanager.enhance = self.enhance
+        config.pipeline.datamanager.enhance = enhance
         config.pipeline.datamanager.dataparser.downscale_factor = 1
         config.pipeline.model.num_random = 20000
-        config.pipeline.model.random_scale = 3.0  # the toy scene's normalized extent
+        config.pipeline.model.random_scale = 3.0  # covers the simulated scene's normalized extent
         start = time.perf_counter()
         train_main(config)
         train_seconds = time.perf_counter() - start
@@ -100,21 +117,15 @@ class Demo:
         _, pipeline, _, _ = eval_setup(config_path, test_mode="test")
         metrics = pipeline.get_average_eval_image_metrics(get_std=False)
         pipeline.eval()  # get_average_eval_image_metrics leaves the pipeline in train mode
-        renders = []
         with torch.no_grad():
+            train_cams = pipeline.datamanager.train_dataset.cameras
+            train_renders = [self._render(pipeline, train_cams[i : i + 1].to(pipeline.device)) for i in range(k)]
+            test_renders, test_truth = [], []
             for camera, batch in pipeline.datamanager.fixed_indices_eval_dataloader:
-                rgb = pipeline.model.get_outputs_for_camera(camera)["rgb"].cpu().numpy()
-                renders.append(
-                    (
-                        rgb,
-                        batch["image"][..., :3].cpu().float().numpy()
-                        / (255.0 if batch["image"].dtype == torch.uint8 else 1.0),
-                    )
-                )
-        Image.fromarray(contact_sheet([[r for r, _ in renders], [t for _, t in renders]])).save(
-            self.out / "test_renders.png"
-        )
-        return {
+                test_renders.append(self._render(pipeline, camera))
+                image = batch["image"][..., :3].cpu()
+                test_truth.append((image.float() / 255.0 if image.dtype == torch.uint8 else image).numpy())
+        summary = {
             "train_steps": self.steps,
             "train_seconds": round(train_seconds, 1),
             "gaussians": int(pipeline.model.num_points),
@@ -122,6 +133,28 @@ class Demo:
             "test_ssim": float(metrics["ssim"]),
             "config": str(config_path),
         }
+        return summary, train_renders, test_renders, test_truth
+
+    @staticmethod
+    def _render(pipeline, camera) -> np.ndarray:
+        return pipeline.model.get_outputs_for_camera(camera)["rgb"].cpu().numpy()
+
+    def _print(self, report: Dict) -> None:
+        lines: List[str] = [
+            f"{report['train_views']} dark training views (mean {report['mean_input_brightness']:.3f}): "
+            f"PSNR vs truth {report['psnr_input_vs_truth_db']:.2f} dB as captured, "
+            f"{report['psnr_enhanced_vs_truth_db']:.2f} dB after Naka"
+        ]
+        for name in ("naka-gs", "baseline"):
+            if name in report:
+                r = report[name]
+                lines.append(
+                    f"{name:>8}: test PSNR {r['test_psnr_db']:.2f} dB, SSIM {r['test_ssim']:.3f} "
+                    f"({r['train_steps']} steps in {r['train_seconds']:.0f} s, {r['gaussians']} Gaussians)"
+                )
+        lines.append(f"wrote {self.out}/side_by_side.png, test_renders.png, report.json")
+        for line in lines:
+            CONSOLE.print(f"[naka-gs demo] {line}", markup=False)
 
 
 def entrypoint(args: Optional[Sequence[str]] = None) -> None:
