@@ -1,13 +1,13 @@
 """A small ray-cast low-light scene with ground truth, generated in a second with no downloads.
 
-The embedded default of the README demo and the tests' fixture: a textured sphere and box on a
-checkered floor with a striped backdrop, seen by an orbit of pinhole cameras. Images are exactly
+The tests' fixture (the README demo uses the spec-driven simulator, :mod:`naka_gs_plugin.sim.generate`):
+a textured sphere and box on a checkered floor with a striped backdrop, seen by an orbit of pinhole cameras. Images are exactly
 3D-consistent (analytic ray casting), so Gaussians can be trained on them and SfM features match.
 
 Effects, applied in linear light in this order and only these: exposure reduction (``exposure``),
 Poisson-Gaussian sensor noise (``noise``), then sRGB encoding and 8-bit quantization. Test and
-``train_gt`` images are the clean normal-light renders. The spec-driven simulator with selectable
-effects is :mod:`naka_gs_plugin.sim` proper (later); this module stays the minimal fixture.
+``train_gt`` images are the clean normal-light renders. It does not depend on the rasterizer, so the
+data, enhancement and CLI tests stay independent of the model code.
 """
 
 from __future__ import annotations
