@@ -24,9 +24,8 @@ from typing import Any, Dict, Optional, Union
 
 import numpy as np
 import torch
-from rich.progress import track
-
 from nerfstudio.utils.rich_utils import CONSOLE
+from rich.progress import track
 
 from naka_gs_plugin.sim import points as pc
 from naka_gs_plugin.sim.capture import CaptureScene
@@ -42,6 +41,7 @@ from naka_gs_plugin.sim.spec import (
     Quantize,
     Response,
     SceneSpec,
+    to_jsonable,
 )
 from naka_gs_plugin.sim.views import View, lamp_image, place_lamps
 
@@ -67,7 +67,9 @@ def noise_generator(seed: int, view: View) -> torch.Generator:
 def encoding_of(spec: SceneSpec) -> Dict[str, Any]:
     """How the training images store values (recorded in the manifest)."""
     response = spec.effect(Response)
-    curve = "linear" if response is None else (response.curve if response.curve == "srgb" else f"gamma {response.gamma}")
+    curve = (
+        "linear" if response is None else (response.curve if response.curve == "srgb" else f"gamma {response.gamma}")
+    )
     return {
         "values": curve,
         "bit_depth": 8 if spec.effect(Quantize) else 16,
@@ -125,7 +127,9 @@ def generate(spec: SceneSpec, out: Path, seed: Optional[int] = None) -> Path:
     manifest: Dict[str, Any] = {
         "generator": "naka-gs-sim",
         "spec_file": str(spec.path.resolve()) if spec.path else None,
-        "spec_sha256": hashlib.sha256(spec.path.read_bytes()).hexdigest() if spec.path and spec.path.is_file() else None,
+        "spec_sha256": hashlib.sha256(spec.path.read_bytes()).hexdigest()
+        if spec.path and spec.path.is_file()
+        else None,
         "spec": spec.to_dict(),
         "seed": spec.seed,
         "scene_seed": spec.scene_seed,
@@ -138,7 +142,7 @@ def generate(spec: SceneSpec, out: Path, seed: Optional[int] = None) -> Path:
     }
     if isinstance(scene, ProceduralScene):
         manifest["points"] = _write_points(spec, scene, train_views, out)
-    (out / "sim_manifest.json").write_text(json.dumps(_jsonable(manifest), indent=1))
+    (out / "sim_manifest.json").write_text(json.dumps(to_jsonable(manifest), indent=1))
     CONSOLE.log(f"naka-gs-sim: wrote {spec.name} to {out}", markup=False)
     return out
 
@@ -159,15 +163,3 @@ def _write_points(spec: SceneSpec, scene: ProceduralScene, train_views: list, ou
         "sim3": {**cfg.sim3.__dict__, "matrix": m.tolist()},
         "sim3_maps": "transforms_*.json world frame -> points.ply frame: x' = scale * R @ x + translation",
     }
-
-
-def _jsonable(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {k: _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, Path):
-        return str(value)
-    if isinstance(value, (np.floating, np.integer)):
-        return value.item()
-    return value

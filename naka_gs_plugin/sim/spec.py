@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Literal, Optional, Tuple, Union, get_args, get_type_hints
 
+import numpy as np
 import yaml
 
 
@@ -194,18 +195,21 @@ class SceneSpec:
             "name": self.name,
             "seed": self.seed,
             "scene_seed": self.scene_seed,
-            "source": {kind: _plain(dataclasses.asdict(self.source))},
-            "effects": [{EFFECT_NAMES[type(e)]: _plain(dataclasses.asdict(e))} for e in self.effects],
+            "source": {kind: to_jsonable(dataclasses.asdict(self.source))},
+            "effects": [{EFFECT_NAMES[type(e)]: to_jsonable(dataclasses.asdict(e))} for e in self.effects],
         }
 
 
-def _plain(value: Any) -> Any:
+def to_jsonable(value: Any) -> Any:
+    """Dicts, lists, paths and numpy scalars -> plain JSON/YAML types (recursively)."""
     if isinstance(value, dict):
-        return {k: _plain(v) for k, v in value.items()}
+        return {k: to_jsonable(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
+        return [to_jsonable(v) for v in value]
     if isinstance(value, Path):
         return str(value)
+    if isinstance(value, (np.floating, np.integer)):
+        return value.item()
     return value
 
 
@@ -294,7 +298,7 @@ def parse_spec(data: Any, path: Path) -> SceneSpec:
     source_data = data.get("source")
     if not isinstance(source_data, dict) or len(source_data) != 1:
         raise reader.fail("source", "expected exactly one of 'procedural: {...}' or 'capture: {...}'")
-    (kind, params), = source_data.items()
+    ((kind, params),) = source_data.items()
     kinds = {"procedural": ProceduralSource, "capture": CaptureSource}
     if kind not in kinds:
         raise reader.fail(f"source.{kind}", "unknown source (known: procedural, capture)")
@@ -316,7 +320,7 @@ def parse_spec(data: Any, path: Path) -> SceneSpec:
             item = {item: {}}
         if not isinstance(item, dict) or len(item) != 1:
             raise reader.fail(f"effects[{i}]", "expected a one-key mapping like '- exposure: {factor: 0.01}'")
-        (ename, eparams), = item.items()
+        ((ename, eparams),) = item.items()
         if ename not in EFFECT_ORDER:
             raise reader.fail(f"effects[{i}].{ename}", f"unknown effect (known: {', '.join(EFFECT_ORDER)})")
         if ename in found:

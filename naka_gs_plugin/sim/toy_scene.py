@@ -17,8 +17,12 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
 from jaxtyping import Float
 from PIL import Image
+
+from naka_gs_plugin.sim.effects import linear_to_srgb
+from naka_gs_plugin.sim.views import look_at
 
 
 @dataclass
@@ -33,27 +37,6 @@ class ToySceneConfig:
     noise: float = 0.0015
     """Gaussian read-noise std in linear [0,1] units; shot noise uses ``noise**2`` as gain."""
     seed: int = 0
-
-
-def srgb_to_linear(x: np.ndarray) -> np.ndarray:
-    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
-
-
-def linear_to_srgb(x: np.ndarray) -> np.ndarray:
-    x = np.clip(x, 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-
-
-def look_at(eye: np.ndarray, target: np.ndarray) -> Float[np.ndarray, "4 4"]:
-    """OpenGL camera-to-world (x right, y up, camera looks down -z), world up = +z."""
-    back = eye - target
-    back /= np.linalg.norm(back)
-    right = np.cross(np.array([0.0, 0.0, 1.0]), back)
-    right /= np.linalg.norm(right)
-    up = np.cross(back, right)
-    c2w = np.eye(4)
-    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, up, back, eye
-    return c2w
 
 
 def _shade(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray) -> np.ndarray:
@@ -155,16 +138,18 @@ def write_toy_scene(out: Path, cfg: ToySceneConfig = ToySceneConfig()) -> Path:
                 # Poisson shot noise with gain noise**2 plus Gaussian read noise, in linear light.
                 gain = max(cfg.noise**2, 1e-12)
                 lin = rng.poisson(lin / gain) * gain + rng.normal(0.0, cfg.noise, lin.shape)
-                _save(out / "train" / name, linear_to_srgb(lin))
-                _save(out / "train_gt" / name, linear_to_srgb(clean))
+                _save(out / "train" / name, lin)
+                _save(out / "train_gt" / name, clean)
             else:
-                _save(out / "test" / name, linear_to_srgb(clean))
+                _save(out / "test" / name, clean)
             frames.append({"file_path": f"{split}/{name}", "transform_matrix": c2w.tolist()})
         (out / f"transforms_{split}.json").write_text(json.dumps({**intr, "frames": frames}, indent=1))
     (out / "toy_scene.json").write_text(json.dumps(asdict(cfg), indent=1))
     return out
 
 
-def _save(path: Path, srgb: np.ndarray) -> None:
+def _save(path: Path, linear: np.ndarray) -> None:
+    """Encode linear-light [0, 1] RGB as 8-bit sRGB PNG."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray((np.clip(srgb, 0, 1) * 255.0 + 0.5).astype(np.uint8)).save(path)
+    srgb = linear_to_srgb(torch.from_numpy(np.clip(linear, 0.0, 1.0))).numpy()
+    Image.fromarray((srgb * 255.0 + 0.5).astype(np.uint8)).save(path)
