@@ -1,0 +1,1 @@
+"""Point-cloud preprocessing (Naka-GS PPM) and point-set alignment."""
