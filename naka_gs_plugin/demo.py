@@ -28,6 +28,7 @@ import torch
 import tyro
 from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
+from torchmetrics.functional.image import peak_signal_noise_ratio
 
 from naka_gs_plugin.enhance.cli import contact_sheet
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
@@ -39,8 +40,8 @@ DEFAULT_SPEC = Path(__file__).resolve().parents[1] / "configs" / "scenes" / "dar
 
 
 def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
-    """PSNR in dB between two float images in [0, 1]."""
-    return float(-10.0 * torch.log10(((a.float() - b.float()) ** 2).mean().clamp(min=1e-12)))
+    """PSNR in dB between two float images in [0, 1] (torchmetrics, as nerfstudio's metrics)."""
+    return float(peak_signal_noise_ratio(a.float(), b.float(), data_range=1.0))
 
 
 @dataclass
