@@ -1,0 +1,82 @@
+"""The accuracy-vs-time grid: a tiny smoke grid runs, records failures, resumes and reproduces."""
+
+import json
+from pathlib import Path
+
+import pytest
+
+from naka_gs_plugin.bench.grid import BenchSpecError, Bench, load_grid, pareto
+
+
+def _grid(tmp_path: Path, scene: Path, families: str) -> Path:
+    path = tmp_path / "grid.yaml"
+    path.write_text(
+        f"""name: tiny
+seed: 0
+scenes:
+  toy: {{data: {scene}}}
+milestones: [3, 6]
+base:
+  pipeline.model.num_random: 500
+  pipeline.model.random_scale: 2.0
+families:
+{families}
+"""
+    )
+    return path
+
+
+FAMILIES = """  naka-gs: {}
+  baseline-raw: {enhance: none}
+  gsplat-on-cpu: {rasterizer: gsplat}
+"""
+
+
+def test_smoke_grid_runs_records_failure_resumes_and_reports(tmp_path, toy_scene):
+    grid = _grid(tmp_path, toy_scene, FAMILIES)
+    out = tmp_path / "out"
+    results = Bench(grid, out=out).main()
+    runs = results["runs"]
+    assert set(runs) == {"toy/naka-gs", "toy/baseline-raw", "toy/gsplat-on-cpu"}
+    for rid in ("toy/naka-gs", "toy/baseline-raw"):
+        run = runs[rid]
+        assert run["status"] == "ok", run.get("error")
+        assert [e["step"] for e in run["evals"]] == [3, 6]
+        assert all(e["psnr"] > 0 and e["gaussians"] > 0 and e["render_ms_per_image"] > 0 for e in run["evals"])
+        assert run["evals"][0]["train_s"] < run["evals"][1]["train_s"]
+        assert run["peak_rss_gb"] > 0.1 and run["stages"]["setup_s"] > 0
+    # Naka is timed when it runs and is absent from the raw baseline.
+    assert runs["toy/naka-gs"]["stages"]["enhance_s"] > 0
+    assert runs["toy/baseline-raw"]["stages"]["enhance_s"] == 0
+    # gsplat needs CUDA: that run fails with its reason recorded and the grid carried on.
+    failed = runs["toy/gsplat-on-cpu"]
+    assert failed["status"] == "failed" and "gsplat" in failed["error"] and "CUDA" in failed["error"]
+    table = (out / "results.md").read_text()
+    assert "| toy/naka-gs | ok | 6 |" in table and "| toy/gsplat-on-cpu | failed:" in table
+    assert (out / "psnr_vs_seconds.png").stat().st_size > 1000 and (out / "psnr_vs_steps.png").stat().st_size > 1000
+
+    # Resume: nothing is redone (the stored records come back unchanged, wall times included).
+    again = Bench(grid, out=out).main()
+    assert again["runs"] == runs
+
+    # Same seed, fresh folder: the quality figures are reproduced exactly.
+    repeat = Bench(grid, out=tmp_path / "repeat", only=("naka-gs",)).main()["runs"]
+    assert list(repeat) == ["toy/naka-gs"]
+    assert [e["psnr"] for e in repeat["toy/naka-gs"]["evals"]] == [e["psnr"] for e in runs["toy/naka-gs"]["evals"]]
+    assert json.loads((out / "results.json").read_text())["runs"] == runs
+
+
+def test_unknown_setting_is_rejected_naming_the_file(tmp_path, toy_scene):
+    grid = _grid(tmp_path, toy_scene, "  typo: {pipeline.model.sh_degre: 1}\n")
+    with pytest.raises(BenchSpecError, match=r"grid\.yaml: setting 'pipeline\.model\.sh_degre'.*no field 'sh_degre'"):
+        load_grid(grid)
+
+
+def test_missing_grid_file_names_the_shipped_grids(tmp_path):
+    with pytest.raises(BenchSpecError, match=r"no such grid file.*smoke\.yaml"):
+        load_grid(tmp_path / "nope.yaml")
+
+
+def test_pareto_front_keeps_only_undominated_points():
+    points = [(1.0, 10.0), (2.0, 9.0), (3.0, 12.0), (4.0, 12.0), (5.0, 13.0)]
+    assert sorted(pareto(points)) == [0, 2, 4]
