@@ -30,6 +30,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import List, Literal, Optional, Tuple, Type
 
+import cv2
+import numpy as np
 import torch
 from jaxtyping import Float
 from nerfstudio.cameras import camera_utils
@@ -41,6 +43,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 from torch import Tensor
 
+from naka_gs_plugin.data.images import read_rgb
 from naka_gs_plugin.enhance.pipeline import default_cache_dir
 
 MAX_AUTO_RESOLUTION = 1600
@@ -293,9 +296,12 @@ def downscaled_copy(path: Path, factor: int, cache_dir: Optional[Path] = None) -
     with Image.open(path) as im:
         # Floor, as nerfstudio's Cameras.rescale_output_resolution does for the intrinsics.
         size = (int(im.width / factor), int(im.height / factor))
-        small = im.convert("RGB").resize(size, Image.Resampling.BOX)
+    image = read_rgb(path)
+    # INTER_AREA = box filter for integer factors; 16-bit sources stay 16-bit (dark detail lives there).
+    small = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+    scale, dtype = (65535.0, np.uint16) if cv2.imread(str(path), cv2.IMREAD_UNCHANGED).dtype != np.uint8 else (255.0, np.uint8)
     tmp = out.with_suffix(".tmp.png")
-    small.save(tmp)
+    cv2.imwrite(str(tmp), np.round(small[..., ::-1] * scale).astype(dtype))
     tmp.replace(out)
     return out
 

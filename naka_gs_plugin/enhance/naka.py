@@ -32,6 +32,9 @@ def naka_rushton(
     """Naka-Rushton response ``I^n / (I^n + sigma^n)`` per pixel and channel; negatives clip to 0."""
     if sigma <= 0 or n <= 0:
         raise ValueError(f"Naka-Rushton needs sigma > 0 and n > 0, got sigma={sigma}, n={n}")
+    if images.is_floating_point() and not torch.isfinite(images).all():
+        bad = int((~torch.isfinite(images)).any(dim=-1).sum())
+        raise ValueError(f"Naka-Rushton input has {bad} NaN/Inf pixels -- fix the image (re-export it as 8/16-bit PNG)")
     x = images.clamp(min=0.0)
     if n == 1.0:
         return x / (x + sigma)
