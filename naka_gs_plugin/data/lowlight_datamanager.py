@@ -12,12 +12,17 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Dict, List, Literal, Tuple, Type, Union
 
+import cv2
+import numpy as np
 import torch
+from jaxtyping import Float
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanager, FullImageDatamanagerConfig
 from nerfstudio.data.datasets.base_dataset import InputDataset
 from nerfstudio.utils.rich_utils import CONSOLE
+from torch import Tensor
 
+from naka_gs_plugin.data.images import read_rgb
 from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
 
@@ -43,6 +48,15 @@ class LowLightDataset(InputDataset):
 
     def __bool__(self) -> bool:
         return self.has_ground_truth and len(self) > 0
+
+    def get_image_float32(self, image_idx: int) -> Float[Tensor, "H W 3"]:
+        """The image at full bit depth (16-bit captures keep their dark detail), float32 sRGB [0, 1]."""
+        path = self._dataparser_outputs.image_filenames[image_idx]
+        image = read_rgb(path)
+        if self.scale_factor != 1.0:
+            size = (int(image.shape[1] * self.scale_factor), int(image.shape[0] * self.scale_factor))
+            image = cv2.resize(image, size, interpolation=cv2.INTER_LINEAR)
+        return torch.from_numpy(np.ascontiguousarray(image))
 
     def get_data(self, image_idx: int, image_type: Literal["uint8", "float32"] = "float32") -> Dict:
         if self.has_ground_truth:
