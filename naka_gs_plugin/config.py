@@ -13,11 +13,11 @@ from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.engine.trainer import TrainerConfig
-from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 from naka_gs_plugin.data.lowlight_datamanager import LowLightDatamanagerConfig
 from naka_gs_plugin.model.naka_gs_model import NakaGSModelConfig
+from naka_gs_plugin.pipeline import NakaGSPipelineConfig
 
 CUDA = torch.cuda.is_available()
 MAX_STEPS = 30000 if CUDA else 3000
@@ -55,7 +55,7 @@ naka_gs_method = MethodSpecification(
         mixed_precision=False,
         # nerfstudio defaults to "cuda", which dies on machines without one.
         machine=MachineConfig(device_type="cuda" if CUDA else "cpu"),
-        pipeline=VanillaPipelineConfig(
+        pipeline=NakaGSPipelineConfig(
             datamanager=LowLightDatamanagerConfig(),
             model=NakaGSModelConfig(**({} if CUDA else CPU_SCHEDULE)),
         ),

@@ -24,7 +24,7 @@ def _dm(scene, dtype="float32", **enhance):
 
 
 def test_train_images_are_naka_enhanced(toy_scene):
-    dm = _dm(toy_scene)
+    dm = _dm(toy_scene, correction="none")  # Naka alone; the correction net: tests/test_correction_infer.py
     for data, path in zip(dm.cached_train, dm.train_dataset.image_filenames):
         want = naka_enhance(load_rgb(path).float() / 255.0)
         assert torch.allclose(data["image"], want, atol=2e-5)  # 16-bit cache quantisation
@@ -69,7 +69,7 @@ def test_cache_hit_on_second_run_and_miss_when_sigma_changes(toy_scene, monkeypa
 
 
 def test_scene_stats_cache_key_covers_all_views(toy_scene):
-    dm = _dm(toy_scene, stats="scene")
+    dm = _dm(toy_scene, stats="scene", correction="none")
     images = [load_rgb(p).float() / 255.0 for p in dm.train_dataset.image_filenames]
     want = naka_enhance(torch.stack(images), stats="scene")
     got = torch.stack([d["image"] for d in dm.cached_train])

@@ -40,13 +40,13 @@ def test_lpips_is_outside_the_module_tree():
     assert not any("lpips" in k for k in model.state_dict())
 
 
-def test_auto_backend_is_torch_on_cpu_and_gsplat_on_cpu_is_refused(frames):
+def test_auto_backend_is_cpu_fast_on_cpu_and_gsplat_on_cpu_is_refused(frames):
     cameras, _ = frames
     model, _, _ = _model()
     model.eval()
     with torch.no_grad():
         out = model.get_outputs(cameras[0:1])
-    assert model._backend_logged == "torch"
+    assert model._backend_logged == "cpu-fast"  # numba is a dependency
     assert out["rgb"].shape == (48, 64, 3) and torch.isfinite(out["rgb"]).all()
     assert out["depth"].shape == (48, 64, 1)
     forced, _, _ = _model(rasterizer="gsplat")

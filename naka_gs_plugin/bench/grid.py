@@ -27,6 +27,7 @@ import json
 import os
 import random
 import resource
+import shutil
 import subprocess
 import sys
 import time
@@ -173,8 +174,6 @@ def run_one(run: Dict[str, Any], out: Path) -> Dict[str, Any]:
     config.steps_per_save = last
     # nerfstudio's periodic evaluations would land inside the timed training; milestones replace them.
     config.steps_per_eval_image = config.steps_per_eval_batch = config.steps_per_eval_all_images = last + 1
-    # A cold enhancement cache per run, so the enhance/correction stages are really timed.
-    config.pipeline.datamanager.enhance.cache_dir = config.get_base_dir() / "enhance_cache"
     for key, value in run["settings"].items():
         set_setting(config, key, value)
     config.max_num_iterations = last
@@ -183,18 +182,23 @@ def run_one(run: Dict[str, Any], out: Path) -> Dict[str, Any]:
     stages: Dict[str, float] = {}
     t0 = time.perf_counter()
     trainer = config.setup(local_rank=0, world_size=1)
-    trainer.setup(test_mode="test")
+    trainer.setup(test_mode="val")  # as ns-train: the point source / PPM seeding runs in this mode only
     stages["setup_s"] = time.perf_counter() - t0
     pipeline = trainer.pipeline
     t = time.perf_counter()
     _ = pipeline.datamanager.cached_train  # nerfstudio loads (and we enhance) the training images lazily
     stages["setup_s"] += time.perf_counter() - t
+    # The scores are on the test split (the val split can be a single view, as in LOM), loaded and
+    # undistorted by nerfstudio's own datamanager exactly as ns-eval does.
+    test_views = config.pipeline.datamanager.setup(device=pipeline.device, test_mode="test").fixed_indices_eval_dataloader
     enhancer_run = dict(getattr(pipeline.datamanager, "enhancer").last_run)
     stages["enhance_s"] = float(enhancer_run.get("naka_seconds", enhancer_run.get("seconds", 0.0)))
     stages["correction_s"] = float(enhancer_run.get("correction_seconds", 0.0))
-    points = getattr(pipeline, "points_summary", None) or getattr(pipeline.model, "points_summary", None)
-    if points:
-        stages["points_s"] = float(points.get("seconds", 0.0))
+    seeding = getattr(pipeline, "seeding", None)
+    points = seeding.summary if seeding is not None else {}
+    stages["points_s"] = float(sum(points.get("timings_s", {}).values())) + float(
+        points.get("triangulation", {}).get("total_seconds", 0.0)
+    )
 
     evals: List[Dict[str, Any]] = []
     clock = {"train": 0.0, "resumed": 0.0}
@@ -202,20 +206,27 @@ def run_one(run: Dict[str, Any], out: Path) -> Dict[str, Any]:
     def evaluate(step: int) -> None:
         clock["train"] += time.perf_counter() - clock["resumed"]
         t = time.perf_counter()
-        metrics = pipeline.get_average_eval_image_metrics(step=step + 1, get_std=False)
-        eval_s = time.perf_counter() - t
+        pipeline.eval()
+        render_s, scores = 0.0, []
+        with torch.no_grad():
+            for camera, batch in test_views:
+                r = time.perf_counter()
+                outputs = pipeline.model.get_outputs_for_camera(camera)
+                render_s += time.perf_counter() - r
+                scores.append(pipeline.model.get_image_metrics_and_images(outputs, batch)[0])
         pipeline.train()
+        eval_s = time.perf_counter() - t
         record = {
             "step": step + 1,
             "train_s": round(clock["train"], 3),
             "eval_s": round(eval_s, 3),
-            "psnr": float(metrics["psnr"]),
-            "ssim": float(metrics["ssim"]),
+            "psnr": float(np.mean([m["psnr"] for m in scores])),
+            "ssim": float(np.mean([m["ssim"] for m in scores])),
             "gaussians": int(pipeline.model.num_points),
-            "render_ms_per_image": round(render_ms(pipeline), 2),
+            "render_ms_per_image": round(1000.0 * render_s / len(test_views), 2),
         }
-        if "lpips" in metrics:
-            record["lpips"] = float(metrics["lpips"])
+        if all("lpips" in m for m in scores):
+            record["lpips"] = float(np.mean([m["lpips"] for m in scores]))
         evals.append(record)
         CONSOLE.print(
             f"[naka-gs bench] {run['scene']}/{run['family']} step {record['step']}: PSNR {record['psnr']:.2f} dB, "
@@ -238,23 +249,9 @@ def run_one(run: Dict[str, Any], out: Path) -> Dict[str, Any]:
         "stages": {k: round(v, 3) for k, v in stages.items()},
         "evals": evals,
         "peak_rss_gb": round(rss_kb / 1024**2, 3),
+        "points": {"source": points.get("source", "random"), "count": points.get("final_count")},
         "config": str(config.get_base_dir() / "config.yml"),
     }
-
-
-def render_ms(pipeline) -> float:
-    """Mean wall time (ms) to render one test view, forward only (what the viewer and ns-render pay)."""
-    import torch
-
-    cameras = pipeline.datamanager.eval_dataset.cameras
-    pipeline.eval()
-    with torch.no_grad():
-        start = time.perf_counter()
-        for i in range(len(cameras)):
-            pipeline.model.get_outputs_for_camera(cameras[i : i + 1].to(pipeline.device))
-        ms = 1000.0 * (time.perf_counter() - start) / max(len(cameras), 1)
-    pipeline.train()
-    return ms
 
 
 # ---------------------------------------------------------------------------------------- the grid
@@ -350,6 +347,7 @@ class Bench:
             run_file.write_text(json.dumps(run))
             result_file = run_file.with_name("result.json")
             result_file.unlink(missing_ok=True)
+            shutil.rmtree(run_file.parent / "cache", ignore_errors=True)  # cold: every stage is really timed
             log = run_file.with_name("log.txt")
             with open(log, "w") as fh:
                 proc = subprocess.run(
@@ -357,7 +355,12 @@ class Bench:
                     stdout=fh,
                     stderr=subprocess.STDOUT,
                     timeout=self.timeout_s,
-                    env={**os.environ, "TORCHDYNAMO_DISABLE": os.environ.get("TORCHDYNAMO_DISABLE", "1")},
+                    # A private cache per run: enhancement, correction and PPM are computed, hence timed.
+                    env={
+                        **os.environ,
+                        "TORCHDYNAMO_DISABLE": os.environ.get("TORCHDYNAMO_DISABLE", "1"),
+                        "NAKA_GS_CACHE": str(run_file.parent / "cache"),
+                    },
                 )
             outcome = json.loads(result_file.read_text()) if result_file.exists() else None
             if proc.returncode != 0 or outcome is None or "error" in outcome:
@@ -413,18 +416,20 @@ def markdown_table(results: Dict[str, Any]) -> str:
         "enhancement + correction + points/PPM + model creation; train = training up to the milestone "
         "(evaluation excluded).",
         "",
-        "| run | status | step | PSNR | SSIM | LPIPS | Gaussians | enhance | correction | points | setup | train | render ms/img | eval | peak RSS GB |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| run | status | step | PSNR | SSIM | LPIPS | Gaussians | seed points | enhance | correction | points | setup | train | render ms/img | eval | peak RSS GB |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for rid, run in results["runs"].items():
         if run["status"] != "ok":
-            rows.append(f"| {rid} | failed: {run.get('error', '')[:120]} |" + " |" * 13)
+            rows.append(f"| {rid} | failed: {run.get('error', '')[:120]} |" + " |" * 14)
             continue
         s = run["stages"]
+        pts = run.get("points") or {}
+        seed = f"{pts.get('source', '?')}" + (f" ({pts['count']})" if pts.get("count") else "")
         for e in run["evals"]:
             lp = f"{e['lpips']:.3f}" if "lpips" in e else "n/a"
             rows.append(
-                f"| {rid} | ok | {e['step']} | {e['psnr']:.2f} | {e['ssim']:.3f} | {lp} | {e['gaussians']} | "
+                f"| {rid} | ok | {e['step']} | {e['psnr']:.2f} | {e['ssim']:.3f} | {lp} | {e['gaussians']} | {seed} | "
                 f"{s.get('enhance_s', 0):.2f} | {s.get('correction_s', 0):.2f} | {s.get('points_s', 0):.2f} | "
                 f"{s['setup_s']:.1f} | {e['train_s']:.1f} | {e.get('render_ms_per_image') or 'n/a'} | {e['eval_s']:.1f} | "
                 f"{run['peak_rss_gb']:.2f} |"

@@ -1,19 +1,24 @@
-"""Benchmark the sparse pure-torch rasterizer against the dense reference.
+"""Benchmark the CPU rasterizers: compiled cpu-fast vs our torch path vs the dense reference.
 
-Every case (method x Gaussians x resolution) runs in a fresh spawned process, so each one's peak
-memory is its own: "peak MB" is the kernel's peak resident set size of the process (``VmHWM``,
-reset through ``/proc/self/clear_refs`` just before the first render) minus its resident size at
-that moment, i.e. the extra host memory the renders (forward and backward, including allocator
-caches) needed at their peak. (``getrusage``'s ``ru_maxrss`` would be wrong here: Linux carries the
-parent's value across fork and exec.) On CUDA it is ``torch.cuda.max_memory_allocated`` instead.
-Timings are only meaningful on an otherwise idle machine; the load averages at the start and end
-are recorded with the results.
+Every case (method x Gaussians x resolution x threads) runs in a fresh spawned process, so each
+one's peak memory is its own: "peak MB" is the kernel's peak resident set size of the process
+(``VmHWM``, reset through ``/proc/self/clear_refs`` just before the first render) minus its
+resident size at that moment, i.e. the extra host memory the renders (forward and backward,
+including allocator caches) needed at their peak. (``getrusage``'s ``ru_maxrss`` would be wrong
+here: Linux carries the parent's value across fork and exec.) On CUDA it is
+``torch.cuda.max_memory_allocated`` instead. cpu-fast's kernels are compiled or loaded from numba's
+disk cache before the clock starts; the compile time is reported separately (a process with an
+empty ``NUMBA_CACHE_DIR``, then one loading that cache). Timings are only meaningful on an
+otherwise idle machine; the load averages at the start and end are recorded with the results.
+
+Thread scaling: cpu-fast runs with ``--threads`` and with 1 thread (``numba.set_num_threads`` and
+``torch.set_num_threads`` together); the torch path and the dense reference with ``--threads``.
 
 The dense reference materialises pixels x Gaussians tensors, so unless that product fits
 ``--dense-budget`` it is not run on the full image. Its cost is ``t0 + k * pixels``; it is timed on
 a 1-pixel image and on a top-left window of the same camera (same intrinsics, smaller image) with
 pixels x Gaussians within the budget, and that line is extrapolated to the full image. Such rows
-are marked with ``*`` and the window size; their memory is that of the window.
+are marked with ``*``; their memory is that of the window.
 
 The scene imitates a trained splatfacto scene: Gaussians spread through the view frustum at depths
 2..10 (60 degree horizontal field of view), random orientations, log-normal anisotropic scales
@@ -22,6 +27,10 @@ depth at 441 px width, i.e. a mean radius of ~4.7 px after gsplat's 0.3 px^2 blu
 the resolution, as when rendering one scene larger), sigmoid(N(0, 2)) opacities and degree-3 SH
 colours. The table reports the mean radius of the visible Gaussians and the number of
 Gaussian-pixel pairs with ``alpha >= 1/255`` inside the radius boxes.
+
+Also reported: the viewer's frame time (``NakaGSModel.get_outputs`` under ``torch.no_grad``, eval
+mode, so RGB + expected depth as the viewer renders) and a profile of one forward+backward of
+cpu-fast split into projection, SH colours, sort+bin, the two kernels and the rest.
 """
 
 from __future__ import annotations
@@ -32,6 +41,7 @@ import math
 import multiprocessing
 import os
 import statistics
+import tempfile
 import time
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
@@ -46,26 +56,32 @@ FOV_X_DEG = 60.0
 REFERENCE_WIDTH = 441
 MEDIAN_SIGMA_PX = 0.6
 """Median projected standard deviation (px) of a Gaussian axis at the mean depth at 441 px width."""
+METHODS = ("cpu-fast", "torch", "dense")
 
 
 @dataclasses.dataclass
 class BenchConfig:
-    """Sparse vs dense rasterizer timing (forward, forward+backward) and peak memory."""
+    """cpu-fast vs torch vs dense rasterizer: timing (forward, forward+backward), peak memory,
+    thread scaling, viewer frame time, cpu-fast compile time and a stage profile."""
 
-    sizes: Tuple[int, ...] = (10_000, 50_000, 100_000)
+    sizes: Tuple[int, ...] = (10_000, 50_000, 100_000, 300_000)
     """Numbers of Gaussians."""
     resolutions: Tuple[str, ...] = ("220x146", "441x293", "882x586")
     """Image sizes as WIDTHxHEIGHT."""
     repeats: int = 3
     """Timed repetitions per case after one warm-up; the median is reported."""
     threads: int = 2
-    """torch intra-op threads."""
+    """Threads (torch intra-op and numba) of the main runs; cpu-fast is also run with 1."""
     dense_budget: int = 20_000_000
     """Largest pixels x Gaussians product the dense reference renders in one go."""
+    viewer_resolution: str = "441x293"
+    """Image size of the viewer frame-time runs (one per size, cpu-fast and torch)."""
+    profile_case: str = "100000@441x293"
+    """GAUSSIANS@WIDTHxHEIGHT of the cpu-fast stage profile."""
     device: str = "cpu"
-    """Torch device, e.g. cpu or cuda."""
+    """Torch device for the torch path and dense reference (cpu-fast is CPU-only), e.g. cuda."""
     quick: bool = False
-    """Smoke run: 10k Gaussians at 220x146, one repetition."""
+    """Smoke run: 10k Gaussians at 220x146, one repetition, profile and viewer at that size."""
     out_json: Optional[Path] = None
     """Also write the results here."""
 
@@ -147,12 +163,31 @@ def _sync(device: str) -> None:
         torch.cuda.synchronize()
 
 
-def _time_renders(scene: Dict, width: int, height: int, method: str, repeats: int, device: str):
-    """Median forward and forward+backward seconds of ``repeats`` renders after one warm-up."""
-    from naka_gs_plugin.model.rasterize import rasterization
+def _renderer(method: str):
+    if method == "cpu-fast":
+        from naka_gs_plugin.model.rasterize_cpu_fast import rasterization, warm_up
+
+        warm_up(torch.float32)
+        return rasterization
+    if method == "torch":
+        from naka_gs_plugin.model.rasterize import rasterization
+
+        return rasterization
     from naka_gs_plugin.model.rasterize_dense import rasterization_dense
 
-    render = rasterization if method == "sparse" else rasterization_dense
+    return rasterization_dense
+
+
+def _set_threads(threads: int) -> None:
+    import numba
+
+    torch.set_num_threads(threads)
+    numba.set_num_threads(threads)
+
+
+def _time_renders(scene: Dict, width: int, height: int, method: str, repeats: int, device: str):
+    """Median forward and forward+backward seconds of ``repeats`` renders after one warm-up."""
+    render = _renderer(method)
     fwd, total = [], []
     for _ in range(repeats + 1):
         params = {k: v.detach().clone().requires_grad_(k not in ("viewmats", "Ks")) for k, v in scene.items()}
@@ -170,18 +205,20 @@ def _time_renders(scene: Dict, width: int, height: int, method: str, repeats: in
     return statistics.median(fwd[1:]), statistics.median(total[1:])
 
 
-def _run_case(method: str, n: int, width: int, height: int, cfg: BenchConfig) -> Dict:
+def _run_case(method: str, n: int, width: int, height: int, threads: int, cfg: BenchConfig) -> Dict:
     """One benchmark case, meant to run in a fresh process (its peak memory is its own)."""
-    torch.set_num_threads(cfg.threads)
-    scene = make_scene(n, width, height, device=cfg.device)
-    if cfg.device.startswith("cuda"):
+    _set_threads(threads)
+    device = "cpu" if method == "cpu-fast" else cfg.device
+    scene = make_scene(n, width, height, device=device)
+    _renderer(method)  # cpu-fast: compile / load the kernels before measuring
+    if device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
         base = torch.cuda.memory_allocated()
     else:
         base = _reset_peak_rss()
-    result: Dict = {"method": method, "gaussians": n, "width": width, "height": height}
-    if method == "sparse" or n * width * height <= cfg.dense_budget:
-        result["fwd_s"], result["fwd_bwd_s"] = _time_renders(scene, width, height, method, cfg.repeats, cfg.device)
+    result: Dict = {"method": method, "gaussians": n, "width": width, "height": height, "threads": threads}
+    if method != "dense" or n * width * height <= cfg.dense_budget:
+        result["fwd_s"], result["fwd_bwd_s"] = _time_renders(scene, width, height, method, cfg.repeats, device)
         result["measured_pixels"] = width * height
     else:
         # Dense cost is t0 + k * pixels: measure a 1-pixel and a budget-sized top-left window of the
@@ -189,101 +226,215 @@ def _run_case(method: str, n: int, width: int, height: int, cfg: BenchConfig) ->
         pixels = max(2, cfg.dense_budget // n)
         win_w = min(width, pixels)
         win_h = max(1, min(height, pixels // win_w))
-        one = _time_renders(scene, 1, 1, method, cfg.repeats, cfg.device)
-        window = _time_renders(scene, win_w, win_h, method, cfg.repeats, cfg.device)
+        one = _time_renders(scene, 1, 1, method, cfg.repeats, device)
+        window = _time_renders(scene, win_w, win_h, method, cfg.repeats, device)
         scale = (width * height - 1) / (win_w * win_h - 1)
         result["fwd_s"], result["fwd_bwd_s"] = (o + (w - o) * scale for o, w in zip(one, window))
         result["measured_pixels"] = win_w * win_h
         result["window"] = f"{win_w}x{win_h}"
-    if cfg.device.startswith("cuda"):
+    if device.startswith("cuda"):
         result["peak_mb"] = (torch.cuda.max_memory_allocated() - base) / 2**20
     else:
         result["peak_mb"] = (_proc_status_bytes("VmHWM") - base) / 2**20
     return result
 
 
-def _run_isolated(pool_ctx, *args) -> Dict:
+def _viewer_frame(method: str, n: int, width: int, height: int, threads: int, repeats: int) -> Dict:
+    """Median seconds of ``NakaGSModel.get_outputs`` (eval, no grad) for one viewer frame."""
+    from nerfstudio.cameras.cameras import Cameras
+    from nerfstudio.data.scene_box import SceneBox
+
+    from naka_gs_plugin.model.naka_gs_model import NakaGSModelConfig
+
+    _set_threads(threads)
+    _renderer(method)
+    scene = make_scene(n, width, height)
+    rgb = torch.zeros(n, 3, dtype=torch.uint8)
+    box = SceneBox(aabb=torch.tensor([[-10.0, -10, 0], [10, 10, 10]]))
+    model = NakaGSModelConfig(sh_degree=SH_DEGREE, rasterizer=method).setup(
+        scene_box=box, num_train_data=1, seed_points=(scene["means"], rgb)
+    )
+    params = model.gauss_params
+    params["means"].data.copy_(scene["means"])
+    params["quats"].data.copy_(scene["quats"])
+    params["scales"].data.copy_(torch.log(scene["scales"]))
+    params["opacities"].data.copy_(torch.logit(scene["opacities"])[:, None])
+    params["features_dc"].data.copy_(scene["colors"][:, 0])
+    params["features_rest"].data.copy_(scene["colors"][:, 1:])
+    model.step = 10**6  # full SH degree
+    model.eval()
+    k = scene["Ks"][0]
+    # The scene's camera is the OpenCV identity; nerfstudio poses are OpenGL camera-to-world.
+    c2w = torch.tensor([[1.0, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 0]])[None]
+    camera = Cameras(camera_to_worlds=c2w, fx=k[0, 0], fy=k[1, 1], cx=k[0, 2], cy=k[1, 2], width=width, height=height)
+    times = []
+    with torch.no_grad():
+        for _ in range(repeats + 1):
+            t0 = time.perf_counter()
+            out = model.get_outputs(camera)
+            times.append(time.perf_counter() - t0)
+    assert out["rgb"].shape == (height, width, 3)
+    return {"method": method, "gaussians": n, "frame_s": statistics.median(times[1:])}
+
+
+def _stage_profile(n: int, width: int, height: int, threads: int, repeats: int) -> Dict[str, float]:
+    """Median wall seconds per stage of one cpu-fast forward+backward (same loss as the table)."""
+    from naka_gs_plugin.model.projection import project_gaussians, sh_colors
+    from naka_gs_plugin.model.rasterize_cpu_fast import profile_stages
+
+    _set_threads(threads)
+    render = _renderer("cpu-fast")
+    scene = make_scene(n, width, height)
+    runs: List[Dict[str, float]] = []
+    for _ in range(repeats + 1):
+        p = {k: v.detach().clone().requires_grad_(k not in ("viewmats", "Ks")) for k, v in scene.items()}
+        t0 = time.perf_counter()
+        proj = project_gaussians(p["means"], p["quats"], p["scales"], p["viewmats"], p["Ks"], width, height)
+        (proj.means2d.sum() + proj.conics.sum() + proj.depths.sum()).backward()
+        t1 = time.perf_counter()
+        sh_colors(p["means"], p["colors"][None], p["viewmats"], SH_DEGREE).sum().backward()
+        t2 = time.perf_counter()
+        p = {k: v.detach().clone().requires_grad_(k not in ("viewmats", "Ks")) for k, v in scene.items()}
+        with profile_stages() as stages:
+            t3 = time.perf_counter()
+            colors, alphas, _ = render(**p, width=width, height=height, sh_degree=SH_DEGREE)
+            (colors.square().mean() + alphas.mean()).backward()
+            total = time.perf_counter() - t3
+        row = {"projection f+b (torch)": t1 - t0, "SH colours f+b (torch)": t2 - t1, **stages}
+        # Projection and SH are timed in their own calls, so on a busy machine this can go negative.
+        row["rest: total - rows above"] = total - sum(row.values())
+        row["total f+b"] = total
+        runs.append(row)
+    return {key: statistics.median(r[key] for r in runs[1:]) for key in runs[0]}
+
+
+def _compile_seconds(cache_dir: str) -> float:
+    """Seconds to get cpu-fast's float32 kernels ready in a fresh process using ``cache_dir``."""
+    os.environ["NUMBA_CACHE_DIR"] = cache_dir
+    from naka_gs_plugin.model.rasterize_cpu_fast import warm_up
+
+    return warm_up(torch.float32)
+
+
+def _run_isolated(pool_ctx, fn, *args):
     from concurrent.futures import ProcessPoolExecutor
 
     with ProcessPoolExecutor(max_workers=1, mp_context=pool_ctx) as pool:
-        return pool.submit(_run_case, *args).result()
+        return pool.submit(fn, *args).result()
 
 
-def run_cases(cfg: BenchConfig) -> List[Dict]:
-    """Run every case, each in a fresh spawned process; returns one dict per (size, resolution)."""
-    torch.set_num_threads(cfg.threads)
+def run_cases(cfg: BenchConfig) -> Dict:
+    """Run every case, each in a fresh spawned process."""
     ctx = multiprocessing.get_context("spawn")
-    rows = []
     console = Console(stderr=True)
+    out: Dict = {}
+    with tempfile.TemporaryDirectory() as cache_dir:
+        console.log("cpu-fast kernels: cold compile, then cache load ...")
+        out["compile_s"] = _run_isolated(ctx, _compile_seconds, cache_dir)
+        out["cache_load_s"] = _run_isolated(ctx, _compile_seconds, cache_dir)
+    rows = []
     for res in cfg.resolutions:
         width, height = (int(v) for v in res.lower().split("x"))
         for n in cfg.sizes:
             radius, pairs = scene_stats(make_scene(n, width, height), width, height)
             row = {"gaussians": n, "resolution": res, "mean_radius_px": radius, "pairs": pairs}
-            for method in ("sparse", "dense"):
-                console.log(f"{method} {n} Gaussians at {res} ...")
-                row[method] = _run_isolated(ctx, method, n, width, height, cfg)
-            row["speedup_fwd"] = row["dense"]["fwd_s"] / row["sparse"]["fwd_s"]
-            row["speedup_fwd_bwd"] = row["dense"]["fwd_bwd_s"] / row["sparse"]["fwd_bwd_s"]
+            for method in METHODS:
+                console.log(f"{method} {n} Gaussians at {res}, {cfg.threads} threads ...")
+                row[method] = _run_isolated(ctx, _run_case, method, n, width, height, cfg.threads, cfg)
+            if cfg.threads != 1:
+                console.log(f"cpu-fast {n} Gaussians at {res}, 1 thread ...")
+                row["cpu-fast-1"] = _run_isolated(ctx, _run_case, "cpu-fast", n, width, height, 1, cfg)
             rows.append(row)
-    return rows
+    out["rows"] = rows
+    width, height = (int(v) for v in cfg.viewer_resolution.lower().split("x"))
+    out["viewer"] = []
+    for n in cfg.sizes:
+        for method in ("cpu-fast", "torch"):
+            console.log(f"viewer frame: {method} {n} Gaussians at {cfg.viewer_resolution} ...")
+            args = (method, n, width, height, cfg.threads, cfg.repeats)
+            out["viewer"].append(_run_isolated(ctx, _viewer_frame, *args))
+    n_text, res = cfg.profile_case.split("@")
+    width, height = (int(v) for v in res.lower().split("x"))
+    console.log(f"cpu-fast stage profile at {cfg.profile_case} ...")
+    profile_args = (int(n_text), width, height, cfg.threads, cfg.repeats)
+    out["profile"] = _run_isolated(ctx, _stage_profile, *profile_args)
+    return out
 
 
 def render_table(rows: List[Dict], cfg: BenchConfig) -> Table:
     table = Table(
-        title=f"Rasterizer benchmark ({cfg.device}, {cfg.threads} threads, median of {cfg.repeats})",
+        title=f"Rasterizer benchmark (fwd+bwd and fwd seconds, {cfg.threads} threads unless stated, "
+        f"median of {cfg.repeats})",
         caption=(
-            "peak MB: peak RSS (VmHWM) minus RSS before rendering, per case in a fresh process. "
-            "dense*: extrapolated linearly in pixels from a 1-pixel and the stated window of the same "
-            "camera (pixels x Gaussians <= --dense-budget); its peak MB is that of the window."
+            "MB: peak RSS (VmHWM) minus RSS before rendering, per case in a fresh process. "
+            "dense*: extrapolated linearly in pixels from a 1-pixel image and a window of the same camera "
+            "(pixels x Gaussians <= --dense-budget); its MB is that of the window. "
+            "x torch / x dense: forward+backward time of that method over cpu-fast's."
         ),
     )
-    for col in (
-        "Gaussians",
-        "image",
-        "mean r px",
-        "pairs",
-        "sparse fwd s",
-        "sparse f+b s",
-        "sparse MB",
-        "dense fwd s",
-        "dense f+b s",
-        "dense MB",
-        "dense measured",
-        "speed-up fwd",
-        "speed-up f+b",
-    ):
+    columns = ["Gaussians", "image", "mean r px", "pairs"]
+    columns += ["cpu-fast f+b", "cpu-fast fwd", "cpu-fast f+b 1 thr", "thread scaling", "cpu-fast MB"]
+    columns += ["torch f+b", "torch fwd", "torch MB", "dense f+b", "dense fwd", "dense MB"]
+    columns += ["x torch", "x dense"]
+    for col in columns:
         table.add_column(col, justify="right")
     for row in rows:
-        sparse, dense = row["sparse"], row["dense"]
+        fast, ref, dense = row["cpu-fast"], row["torch"], row["dense"]
+        one = row.get("cpu-fast-1")
         star = "*" if "window" in dense else ""
         table.add_row(
             f"{row['gaussians']:,}",
             row["resolution"],
             f"{row['mean_radius_px']:.1f}",
             f"{row['pairs'] / 1e6:.2f}M",
-            f"{sparse['fwd_s']:.3f}",
-            f"{sparse['fwd_bwd_s']:.3f}",
-            f"{sparse['peak_mb']:.0f}",
-            f"{dense['fwd_s']:.2f}{star}",
+            f"{fast['fwd_bwd_s']:.3f}",
+            f"{fast['fwd_s']:.3f}",
+            f"{one['fwd_bwd_s']:.3f}" if one else "-",
+            f"{one['fwd_bwd_s'] / fast['fwd_bwd_s']:.2f}x" if one else "-",
+            f"{fast['peak_mb']:.0f}",
+            f"{ref['fwd_bwd_s']:.3f}",
+            f"{ref['fwd_s']:.3f}",
+            f"{ref['peak_mb']:.0f}",
             f"{dense['fwd_bwd_s']:.2f}{star}",
+            f"{dense['fwd_s']:.2f}{star}",
             f"{dense['peak_mb']:.0f}{star}",
-            dense.get("window", "full") + (f" ({dense['measured_pixels']} px)" if star else ""),
-            f"{row['speedup_fwd']:.0f}x",
-            f"{row['speedup_fwd_bwd']:.0f}x",
+            f"{ref['fwd_bwd_s'] / fast['fwd_bwd_s']:.1f}x",
+            f"{dense['fwd_bwd_s'] / fast['fwd_bwd_s']:.0f}x",
         )
     return table
 
 
 def report(cfg: BenchConfig) -> None:
-    """Run the benchmark, print its table and optionally save the results as JSON."""
+    """Run the benchmark, print its tables and optionally save the results as JSON."""
     if cfg.quick:
-        cfg = dataclasses.replace(cfg, sizes=(10_000,), resolutions=("220x146",), repeats=1)
+        cfg = dataclasses.replace(
+            cfg, sizes=(10_000,), resolutions=("220x146",), repeats=1, profile_case="10000@220x146"
+        )
     load_start = os.getloadavg()
-    rows = run_cases(cfg)
+    results = run_cases(cfg)
     load_end = os.getloadavg()
-    console = Console(width=200)
-    console.print(render_table(rows, cfg))
+    console = Console(width=220)
+    console.print(render_table(results["rows"], cfg))
+    viewer = Table(title=f"Viewer frame time at {cfg.viewer_resolution} (get_outputs, no grad, RGB+ED)")
+    for col in ("Gaussians", "cpu-fast s", "torch s", "x torch"):
+        viewer.add_column(col, justify="right")
+    frames = {(v["method"], v["gaussians"]): v["frame_s"] for v in results["viewer"]}
+    for n in cfg.sizes:
+        fast, ref = frames[("cpu-fast", n)], frames[("torch", n)]
+        viewer.add_row(f"{n:,}", f"{fast:.3f}", f"{ref:.3f}", f"{ref / fast:.1f}x")
+    console.print(viewer)
+    profile = Table(title=f"cpu-fast forward+backward profile at {cfg.profile_case} ({cfg.threads} threads)")
+    profile.add_column("stage")
+    profile.add_column("s", justify="right")
+    profile.add_column("share", justify="right")
+    total = results["profile"]["total f+b"]
+    for stage, seconds in results["profile"].items():
+        profile.add_row(stage, f"{seconds:.3f}", f"{100 * seconds / total:.0f}%")
+    console.print(profile)
+    console.print(
+        f"cpu-fast float32 kernels: {results['compile_s']:.1f} s to compile (empty NUMBA_CACHE_DIR), "
+        f"{results['cache_load_s']:.1f} s to load from numba's disk cache"
+    )
     console.print(
         f"load average (1/5/15 min) at start {load_start[0]:.2f}/{load_start[1]:.2f}/{load_start[2]:.2f}, "
         f"at end {load_end[0]:.2f}/{load_end[1]:.2f}/{load_end[2]:.2f} on {os.cpu_count()} CPUs"
@@ -295,13 +446,13 @@ def report(cfg: BenchConfig) -> None:
             "cpu_count": os.cpu_count(),
             "load_average_start": load_start,
             "load_average_end": load_end,
-            "results": rows,
+            **results,
         }
         cfg.out_json.write_text(json.dumps(payload, indent=2))
 
 
 def main() -> None:
-    """Console script ``naka-gs-bench-raster``: the sparse-vs-dense rasterizer benchmark."""
+    """Console script ``naka-gs-bench-raster``: the CPU rasterizer benchmark."""
     report(tyro.cli(BenchConfig))
 
 

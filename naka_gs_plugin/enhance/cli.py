@@ -1,12 +1,14 @@
 """``naka-gs-enhance SCENE --out DIR``: the training-time enhancement, run outside training.
 
 Reads a ``lowlight-data`` scene's training images, enhances them exactly as the datamanager
-does (same :class:`~naka_gs_plugin.enhance.pipeline.Enhancer`, same cache), and writes 8-bit PNGs
-plus an optional before/after contact sheet. Prints the throughput in images per second.
+does (same :class:`~naka_gs_plugin.enhance.pipeline.Enhancer`, same cache, including the
+correction network: ``--enhance.correction none|default|PATH --enhance.correction-mode MODE``), and
+writes 8-bit PNGs plus an optional contact sheet. Prints the throughput in images per second.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -53,7 +55,8 @@ class EnhanceCLI:
     downscale_factor: int = 1
     """Image downscale before enhancing (1 = full resolution)."""
     sheet: bool = True
-    """Also write before_after.png (top: input, bottom: enhanced) for up to ``sheet_views`` views."""
+    """Also write before_after.png for up to ``sheet_views`` views (rows: input, enhanced; with the
+    correction network: input, Naka only, corrected)."""
     sheet_views: int = 4
 
     def main(self) -> List[Path]:
@@ -76,7 +79,12 @@ class EnhanceCLI:
         )
         if self.sheet:
             k = min(self.sheet_views, len(images))
-            sheet = contact_sheet([[im.numpy() for im in images[:k]], [im.numpy() for im in enhanced[:k]]])
+            rows = [[im.numpy() for im in images[:k]]]
+            if self.enhance.method == "naka" and self.enhance.correction != "none":
+                naka_only = Enhancer(dataclasses.replace(self.enhance, correction="none"))
+                rows.append([im.numpy() for im in naka_only.enhance_images(images[:k], description="Naka only (sheet)")])
+            rows.append([im.numpy() for im in enhanced[:k]])
+            sheet = contact_sheet(rows)
             Image.fromarray(sheet).save(self.out / "before_after.png")
             CONSOLE.log(f"[naka-gs] wrote {self.out / 'before_after.png'}", markup=False)
         return written

@@ -1,4 +1,4 @@
-"""The enhancement pipeline applied to training images: Naka-Rushton now, correction net later.
+"""The enhancement pipeline applied to training images: Naka-Rushton, then the correction network.
 
 One :class:`Enhancer` turns a scene's low-light training images into enhanced ones, once, with a
 rich progress bar, and keeps the results in an on-disk cache keyed by image content plus every
@@ -27,6 +27,14 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from torch import Tensor
 
+from naka_gs_plugin.enhance.correction import (
+    DEFAULT_MODE,
+    DEFAULT_WEIGHTS,
+    CorrectionRunner,
+    ModeName,
+    file_digest,
+    load_correction,
+)
 from naka_gs_plugin.enhance.naka import linear_stretch, naka_rushton, stretch_stats
 
 CACHE_VERSION = 1
@@ -57,6 +65,18 @@ class EnhanceConfig(InstantiateConfig):
     """Where enhanced images are cached; default ``$NAKA_GS_CACHE`` or ``~/.cache/naka-gs``."""
     use_cache: bool = True
     """Read and write the on-disk cache of enhanced images."""
+    correction: str = "default"
+    """Correction network applied after Naka (method ``naka`` only): ``none``, ``default`` (the weights
+    shipped in ``naka_gs_plugin/enhance/weights/``) or the path of a checkpoint (ours or the authors')."""
+    correction_mode: ModeName = DEFAULT_MODE
+    """Correction inference mode (see ``naka_gs_plugin.enhance.correction.MODES``; ``exact`` = plain
+    float32 full-resolution forward)."""
+
+    def correction_path(self) -> Optional[Path]:
+        """The checkpoint file of ``correction``, or ``None`` for ``none``."""
+        if self.correction == "none":
+            return None
+        return DEFAULT_WEIGHTS if self.correction == "default" else Path(self.correction)
 
     def params(self) -> dict:
         """Everything that changes the output (the cache key's parameter part)."""
@@ -87,10 +107,32 @@ class Enhancer:
         self.cache_dir = (config.cache_dir or default_cache_dir()) / "enhanced"
         self.last_run = {"computed": 0, "cached": 0, "seconds": 0.0}
         """Counts of the last :meth:`enhance_images` call: images computed vs read from cache."""
+        self.correction_path = config.correction_path() if config.method == "naka" else None
+        self.correction_key: Optional[dict] = None
+        """The correction's part of the cache key: weights file hash and inference mode."""
+        if self.correction_path is not None:
+            if not self.correction_path.is_file():
+                hint = (
+                    "the shipped default weights are missing from this install"
+                    if config.correction == "default"
+                    else "no such file"
+                )
+                raise FileNotFoundError(
+                    f"[naka-gs] correction weights {self.correction_path} not found ({hint}): pass "
+                    "--pipeline.datamanager.enhance.correction none (Naka only) or the path of a checkpoint"
+                )
+            self.correction_key = {"weights_sha1": file_digest(self.correction_path), "mode": config.correction_mode}
+        self._runner: Optional[CorrectionRunner] = None
+
+    def runner(self) -> Optional[CorrectionRunner]:
+        """The correction network (loaded on first use), or ``None`` without correction."""
+        if self._runner is None and self.correction_path is not None:
+            self._runner = CorrectionRunner(load_correction(self.correction_path), self.config.correction_mode)
+        return self._runner
 
     def _keys(self, images: Sequence[Tensor]) -> List[str]:
         hashes = [content_hash(im) for im in images]
-        params = json.dumps(self.config.params(), sort_keys=True)
+        params = json.dumps({**self.config.params(), "correction": self.correction_key}, sort_keys=True)
         scene = ""
         if self.config.stats == "scene":
             # Each view's output depends on every view: the key covers the whole set.
@@ -134,17 +176,24 @@ class Enhancer:
             if self.config.stats == "scene":
                 # The pooled statistics need every view, cached or not.
                 lo_scene, hi_scene = self._scene_stats(images)
+            runner = self.runner()
+            correction = f", correction {self.config.correction} ({self.config.correction_mode})" if runner else ""
             with _progress() as progress:
                 task = progress.add_task(
-                    f"{description} ({self.config.method}, {self.config.stats} stats)", total=len(todo)
+                    f"{description} ({self.config.method}, {self.config.stats} stats{correction})", total=len(todo)
                 )
                 for i in todo:
-                    response = naka_rushton(to_float01(images[i]), self.config.sigma, self.config.n)
+                    low = to_float01(images[i])
+                    response = naka_rushton(low, self.config.sigma, self.config.n)
                     lo, hi = stretch_stats(response)
                     if lo_scene is not None:
                         lo, hi = lo_scene, hi_scene
+                    enhanced = linear_stretch(response, lo, hi)
+                    if runner is not None:
+                        pair = (low.permute(2, 0, 1)[None], enhanced.permute(2, 0, 1)[None])
+                        enhanced = runner(*pair)["enhanced"][0].permute(1, 2, 0)
                     # Round to the cache's 16-bit grid so a run is identical with a cold or warm cache.
-                    out[i] = (linear_stretch(response, lo, hi) * 65535.0).round() / 65535.0
+                    out[i] = (enhanced * 65535.0).round() / 65535.0
                     self._write(keys[i], out[i])
                     progress.advance(task)
         seconds = time.perf_counter() - start

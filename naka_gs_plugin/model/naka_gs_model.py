@@ -8,8 +8,10 @@ stock splatfacto breaks on a CPU-only or offline machine:
   (downloads AlexNet; offline it raises). We keep the seed colours on the CPU and build LPIPS
   lazily outside the module tree (:mod:`naka_gs_plugin.model.lpips`).
 - ``get_outputs``: stock code calls ``K.cuda()`` and gsplat's CUDA-only ``rasterization``. We
-  dispatch by device: gsplat for CUDA tensors, :func:`naka_gs_plugin.model.rasterize.rasterization`
-  otherwise (never by try/except around gsplat: each failed call re-attempts a CUDA JIT build).
+  dispatch by device: gsplat for CUDA tensors, the compiled numba tile rasterizer
+  (:mod:`naka_gs_plugin.model.rasterize_cpu_fast`) or our PyTorch one
+  (:mod:`naka_gs_plugin.model.rasterize`) otherwise (never by try/except around gsplat: each
+  failed call re-attempts a CUDA JIT build).
 - ``get_image_metrics_and_images``: LPIPS is left out (not NaN) when its weights are unavailable,
   so ``ns-eval`` JSON stays valid JSON.
 - training safety: a non-finite loss or parameter stops training with a clear message before
@@ -32,6 +34,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 
 from naka_gs_plugin.model.lpips import LazyLPIPS
+from naka_gs_plugin.points.seeding import PointInitConfig
 
 
 class NonFiniteTrainingError(RuntimeError):
@@ -40,13 +43,25 @@ class NonFiniteTrainingError(RuntimeError):
 
 @dataclass
 class NakaGSModelConfig(SplatfactoModelConfig):
-    """Splatfacto's options plus the rasterizer backend and an optional local LPIPS weights file."""
+    """Splatfacto's options plus the rasterizer backend, an optional local LPIPS weights file and the seed points."""
 
     _target: Type = field(default_factory=lambda: NakaGSModel)
-    rasterizer: Literal["auto", "gsplat", "torch"] = "auto"
-    """auto: gsplat for CUDA tensors, our PyTorch rasterizer otherwise; gsplat needs CUDA."""
+    rasterizer: Literal["auto", "gsplat", "torch", "cpu-fast"] = "auto"
+    """auto: gsplat for CUDA tensors, otherwise cpu-fast (compiled numba tile kernels) when numba
+    imports, else torch (pure PyTorch, same results, slower). gsplat needs CUDA, cpu-fast CPU."""
     lpips_weights: Optional[Path] = None
     """Local copy of torchvision's alexnet-owt-7be5be79.pth for LPIPS on offline machines."""
+    init: PointInitConfig = field(default_factory=PointInitConfig)
+    """Seed points (source, alignment, PPM); resolved by NakaGSPipeline, which has the images and cameras."""
+
+
+def _numba_available() -> bool:
+    """Whether the cpu-fast rasterizer's compiler (numba) imports."""
+    try:
+        import numba  # noqa: F401
+    except ImportError:
+        return False
+    return True
 
 
 def viewmat_from_c2w(c2w: Float[Tensor, "C 3 4"]) -> Float[Tensor, "C 4 4"]:
@@ -92,11 +107,16 @@ class NakaGSModel(SplatfactoModel):
     def _backend(self, device: torch.device) -> str:
         choice = self.config.rasterizer
         if choice == "auto":
-            choice = "gsplat" if device.type == "cuda" else "torch"
+            choice = "gsplat" if device.type == "cuda" else ("cpu-fast" if _numba_available() else "torch")
         if choice == "gsplat" and device.type != "cuda":
             raise ValueError(
                 f"rasterizer 'gsplat' needs CUDA tensors but the model is on {device} -- "
-                "use --pipeline.model.rasterizer torch (or auto)"
+                "use --pipeline.model.rasterizer cpu-fast, torch or auto"
+            )
+        if choice == "cpu-fast" and device.type != "cpu":
+            raise ValueError(
+                f"rasterizer 'cpu-fast' needs CPU tensors but the model is on {device} -- "
+                "use --pipeline.model.rasterizer gsplat (or auto)"
             )
         if choice != self._backend_logged:
             CONSOLE.log(
@@ -106,10 +126,15 @@ class NakaGSModel(SplatfactoModel):
         return choice
 
     def _rasterize(self, device: torch.device, **kwargs):
-        if self._backend(device) == "gsplat":
+        backend = self._backend(device)
+        if backend == "gsplat":
             from gsplat.rendering import rasterization as gsplat_rasterization
 
             return gsplat_rasterization(packed=False, sparse_grad=False, **kwargs)
+        if backend == "cpu-fast":
+            from naka_gs_plugin.model.rasterize_cpu_fast import rasterization as cpu_fast_rasterization
+
+            return cpu_fast_rasterization(**kwargs)
         from naka_gs_plugin.model.rasterize import rasterization
 
         return rasterization(**kwargs)

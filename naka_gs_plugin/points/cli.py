@@ -1,0 +1,122 @@
+"""``naka-gs-ppm IN --out OUT.ply``: clean a point cloud with PPM, as ``ns-train naka-gs`` does before seeding.
+
+``IN`` is a .ply, a COLMAP sparse model folder, a VGGT output folder, or a lowlight-data scene
+folder (its own point source is used, as ``--pipeline.model.init.points auto`` would, without the
+triangulation fallback, which needs the training pipeline). With ``--scene`` (implied when ``IN``
+is a scene) the points are aligned to the scene's training cameras and normalized to its training
+frame, exactly as for training; without it they stay in the source frame and the voxel size and
+tau are in the source's units. Writes OUT.ply (binary, float32 xyz + uchar rgb when the source
+has colours) and a JSON summary (counts after each stage and pruning iteration, alignment
+residual, timings).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal, Optional
+
+import numpy as np
+import tyro
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from naka_gs_plugin.points.seeding import PointInitConfig, TrainingFrame, describe, prepare_points
+from naka_gs_plugin.points.sources import PointSourceError, find_scene_source, load_points
+
+
+@dataclass
+class PPMCommand:
+    """Clean a point cloud with Naka-GS's PPM (voxel pooling + progressive pruning)."""
+
+    input: tyro.conf.Positional[Path]
+    """Point source: .ply, COLMAP model folder, VGGT output folder, or a lowlight-data scene folder."""
+    out: Path
+    """Output PLY."""
+    summary: Optional[Path] = None
+    """JSON summary path (default: OUT with .json)."""
+    scene: Optional[Path] = None
+    """lowlight-data scene whose training frame the points are aligned and normalized to."""
+    align: Literal["sim3", "rigid", "none"] = "sim3"
+    """Alignment to the scene's training cameras (needs --scene)."""
+    ppm: bool = True
+    """Run PPM; False only aligns/normalizes and drops non-finite and duplicate points."""
+    voxel_size: float = 0.01
+    """PPM voxel edge (normalized scene units with --scene, else source units)."""
+    tau0: float = 0.005
+    """Initial pruning distance threshold (same units)."""
+    beta: float = 0.01
+    """Threshold growth rate per pruning iteration."""
+    iterations: int = 6
+    """Pruning iterations."""
+    min_points: int = 5000
+    """Minimum points kept by pruning (an iteration going below is rolled back and pruning stops)."""
+    tau_update: Literal["reference", "paper"] = "reference"
+    """tau *= exp(beta * N / M0) with N the count before (reference code) or after (paper) pruning."""
+    seed: int = 42
+    """Seed of the pruning draws."""
+
+    def main(self) -> dict:
+        source = self.input
+        scene = self.scene
+        if source.is_dir() and (source / "transforms_train.json").is_file():
+            scene = scene or source
+            found = find_scene_source(source)
+            if found is None:
+                raise PointSourceError(
+                    f"{source}: the scene has no point source (sparse/0, sparse, colmap_sparse/0, points.ply) -- "
+                    "pass a point file, or train with --pipeline.model.init.points auto to triangulate"
+                )
+            source = found
+        cloud = load_points(source)
+        frame = TrainingFrame.from_scene(scene) if scene is not None else None
+        if frame is None:
+            CONSOLE.log(
+                "[naka-gs] no --scene: points stay in the source frame (no alignment); "
+                f"voxel {self.voxel_size} and tau0 {self.tau0} are in the source's units",
+                markup=False,
+            )
+        init = PointInitConfig(
+            points=str(source), align=self.align, ppm=self.ppm, voxel_size=self.voxel_size, tau0=self.tau0,
+            beta=self.beta, iterations=self.iterations, min_points=self.min_points, tau_update=self.tau_update,
+            seed=self.seed,
+        )  # fmt: skip
+        xyz, rgb, summary = prepare_points(cloud, frame, init)
+        summary["scene"] = str(scene) if scene is not None else None
+        write_ply(self.out, xyz, rgb)
+        summary["output"] = str(self.out)
+        summary_path = self.summary or self.out.with_suffix(".json")
+        summary_path.parent.mkdir(parents=True, exist_ok=True)
+        summary_path.write_text(json.dumps(summary, indent=1))
+        CONSOLE.log(f"[naka-gs] {describe(summary)}; wrote {self.out} and {summary_path}", markup=False)
+        return summary
+
+
+def write_ply(path: Path, xyz: np.ndarray, rgb: Optional[np.ndarray]) -> None:
+    """Binary little-endian PLY: float32 ``x y z`` (+ uchar ``red green blue``)."""
+    from plyfile import PlyData, PlyElement
+
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    if rgb is not None:
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    vertex = np.empty(len(xyz), dtype=fields)
+    for i, k in enumerate("xyz"):
+        vertex[k] = xyz[:, i]
+    if rgb is not None:
+        for i, k in enumerate(("red", "green", "blue")):
+            vertex[k] = rgb[:, i]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    PlyData([PlyElement.describe(vertex, "vertex")], text=False).write(str(path))
+
+
+def entrypoint() -> None:
+    """Console script ``naka-gs-ppm``."""
+    try:
+        tyro.cli(PPMCommand, config=(tyro.conf.FlagConversionOff,)).main()  # --ppm True/False, as ns-train
+    except (PointSourceError, ValueError) as err:
+        CONSOLE.print(f"[naka-gs] error: {err}", markup=False, style="bold red")
+        raise SystemExit(2) from None
+
+
+if __name__ == "__main__":
+    entrypoint()

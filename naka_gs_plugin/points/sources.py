@@ -1,0 +1,214 @@
+"""Point sources behind one loader: PLY files, COLMAP sparse models, VGGT output folders, the simulator.
+
+Every loader returns a :class:`PointCloud` in its **source frame** (whatever world frame the file
+uses), with the camera centres it knows (image name -> centre, same frame) so that
+:func:`naka_gs_plugin.points.seeding.align_cloud` can map it onto the training cameras. Coordinates
+are float64; colours uint8 sRGB in [0, 255] or ``None``. Non-finite coordinates are dropped on
+load and counted in ``nonfinite_dropped``.
+
+Supported inputs (``load_points``):
+
+- ``*.ply``: binary or ASCII, ``x y z`` + optional ``red green blue`` / ``r g b`` (uchar, or float
+  in [0, 1]). A sibling ``points_cameras.json`` (written by ``naka-gs-sim``: image name -> centre)
+  provides its camera centres.
+- a COLMAP sparse model folder (``points3D.bin|.txt`` + ``images.bin|.txt`` + ``cameras``), read
+  with pycolmap; camera centres from the registered images. If the folder also holds
+  ``points.ply`` (VGGT's export of the same points) the PLY is read instead (faster).
+- a VGGT output folder (``sparse/points.ply`` + ``sparse/{cameras,images,points3D}.bin``).
+
+:func:`find_scene_source` lists a lowlight-data scene's own point sources in ``auto`` order.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Optional
+
+import numpy as np
+from jaxtyping import Float, UInt8
+
+SCENE_SOURCES = ("sparse/0", "sparse", "colmap_sparse/0", "points.ply")
+"""``auto`` candidates inside a scene folder, in order: ``naka-gs-process-data``'s model, a VGGT
+folder layout, LOM's COLMAP model, the simulator's cloud."""
+
+CAMERAS_JSON = "points_cameras.json"
+
+
+class PointSourceError(ValueError):
+    """A point source is missing or malformed; the message names the file and the fix, on one line."""
+
+
+@dataclass
+class PointCloud:
+    """Points in the source's own frame, with the camera centres that source knows."""
+
+    xyz: Float[np.ndarray, "N 3"]
+    """float64 positions in the source frame (units of the source)."""
+    rgb: Optional[UInt8[np.ndarray, "N 3"]]
+    """uint8 sRGB colours, or None when the source has none."""
+    source: str
+    """Human-readable description (kind and path)."""
+    cameras: Dict[str, Float[np.ndarray, "3"]] = field(default_factory=dict)
+    """Image file name -> camera centre in the source frame (for alignment; may be empty)."""
+    nonfinite_dropped: int = 0
+    """Points removed on load because a coordinate was NaN or Inf."""
+
+    def __len__(self) -> int:
+        return int(self.xyz.shape[0])
+
+
+def _finite(xyz: np.ndarray, rgb: Optional[np.ndarray], source: str, cameras=None) -> PointCloud:
+    xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    ok = np.isfinite(xyz).all(axis=1)
+    dropped = int((~ok).sum())
+    if dropped:
+        xyz = xyz[ok]
+        rgb = None if rgb is None else rgb[ok]
+    return PointCloud(xyz, rgb, source, dict(cameras or {}), dropped)
+
+
+def _ply_colours(vertex, path: Path) -> Optional[np.ndarray]:
+    names = vertex.data.dtype.names
+    for keys in (("red", "green", "blue"), ("r", "g", "b"), ("diffuse_red", "diffuse_green", "diffuse_blue")):
+        if all(k in names for k in keys):
+            cols = np.stack([np.asarray(vertex[k]) for k in keys], axis=1)
+            if np.issubdtype(cols.dtype, np.floating):
+                finite = cols[np.isfinite(cols)]
+                # float colours: [0, 1] (scaled to [0, 255], as the reference loader does) or [0, 255]
+                if finite.size and finite.max() <= 1.0:
+                    cols = cols * 255.0
+                return np.clip(np.nan_to_num(np.round(cols)), 0, 255).astype(np.uint8)
+            if cols.dtype.itemsize > 1 and cols.max(initial=0) > 255:  # e.g. ushort 16-bit colours
+                return (cols.astype(np.float64) / 257.0).round().clip(0, 255).astype(np.uint8)
+            return cols.astype(np.uint8)
+    return None
+
+
+def load_ply(path: Path, cameras: Optional[Dict[str, np.ndarray]] = None) -> PointCloud:
+    """Read the ``vertex`` element of a binary or ASCII PLY (xyz + optional colours).
+
+    plyfile rather than open3d: open3d converts colours to float [0, 1], only knows
+    ``red/green/blue`` names and returns an empty cloud (no error) for a malformed file.
+    """
+    from plyfile import PlyData, PlyParseError
+
+    path = Path(path)
+    if not path.is_file():
+        raise PointSourceError(f"{path}: PLY file not found -- check the path")
+    try:
+        ply = PlyData.read(str(path))
+        vertex = ply["vertex"]
+    except (PlyParseError, KeyError, ValueError, IndexError, EOFError) as err:
+        raise PointSourceError(
+            f"{path}: not a readable point-cloud PLY ({err.__class__.__name__}: {err}) -- "
+            "write a PLY with a 'vertex' element holding x, y, z"
+        ) from None
+    names = vertex.data.dtype.names or ()
+    if not all(k in names for k in ("x", "y", "z")):
+        raise PointSourceError(f"{path}: the PLY vertex element has no x, y, z properties (has {list(names)})")
+    xyz = np.stack([np.asarray(vertex[k], dtype=np.float64) for k in ("x", "y", "z")], axis=1)
+    if cameras is None:
+        cameras = read_cameras_json(path.parent / CAMERAS_JSON) if (path.parent / CAMERAS_JSON).is_file() else {}
+    return _finite(xyz, _ply_colours(vertex, path), f"PLY {path}", cameras)
+
+
+def read_cameras_json(path: Path) -> Dict[str, np.ndarray]:
+    """``{"image name": [x, y, z], ...}`` -> name -> centre (the simulator's ``points_cameras.json``)."""
+    try:
+        data = json.loads(Path(path).read_text())
+        cams = {str(k): np.asarray(v, dtype=np.float64).reshape(3) for k, v in data.items()}
+    except (json.JSONDecodeError, AttributeError, TypeError, ValueError) as err:
+        raise PointSourceError(
+            f"{path}: expected a JSON object image name -> [x, y, z] ({err.__class__.__name__}) -- fix or delete it"
+        ) from None
+    return cams
+
+
+def is_colmap_model(folder: Path) -> bool:
+    """A folder with ``points3D`` and ``images`` in COLMAP's binary or text format."""
+    return any((folder / f"points3D{e}").is_file() and (folder / f"images{e}").is_file() for e in (".bin", ".txt"))
+
+
+def colmap_camera_centres(folder: Path) -> Dict[str, np.ndarray]:
+    """Registered image name -> camera centre (COLMAP world frame) of the model in ``folder``."""
+    return _centres(_read_colmap(folder))
+
+
+def _centres(rec) -> Dict[str, np.ndarray]:
+    return {im.name: np.asarray(im.projection_center(), np.float64) for im in rec.images.values() if im.has_pose}
+
+
+def _read_colmap(folder: Path):
+    import pycolmap
+
+    try:
+        return pycolmap.Reconstruction(str(folder))
+    except (RuntimeError, ValueError, OSError) as err:  # COLMAP's C++ checks surface as these
+        first = str(err).splitlines()[0] if str(err) else ""
+        raise PointSourceError(
+            f"{folder}: unreadable COLMAP model ({err.__class__.__name__}: {first}) "
+            "-- it needs cameras, images and points3D (.bin or .txt)"
+        ) from None
+
+
+def load_colmap(folder: Path) -> PointCloud:
+    """Points (xyz, rgb) and registered camera centres of a COLMAP sparse model (bin or txt)."""
+    folder = Path(folder)
+    if not is_colmap_model(folder):
+        raise PointSourceError(f"{folder}: no COLMAP model here (needs points3D.bin|.txt and images.bin|.txt)")
+    rec = _read_colmap(folder)
+    cams = _centres(rec)
+    pts = list(rec.points3D.values())
+    # pycolmap exposes points one by one (no array accessor); ~1 us per point.
+    xyz = np.array([p.xyz for p in pts], dtype=np.float64).reshape(-1, 3)
+    rgb = np.array([p.color for p in pts], dtype=np.uint8).reshape(-1, 3)
+    return _finite(xyz, rgb, f"COLMAP model {folder}", cams)
+
+
+def load_points(path: Path) -> PointCloud:
+    """Load any supported source (see the module docstring) in its own frame."""
+    path = Path(path)
+    if path.is_file():
+        if path.suffix.lower() != ".ply":
+            raise PointSourceError(f"{path}: unsupported point file (expected .ply, a COLMAP model or a VGGT folder)")
+        return load_ply(path)
+    if not path.is_dir():
+        raise PointSourceError(
+            f"{path}: not found -- give a .ply, a COLMAP sparse model folder or a VGGT output folder"
+        )
+    for model in (path, path / "sparse"):
+        if is_colmap_model(model):
+            if (model / "points.ply").is_file():  # VGGT: points.ply == points3D.bin, much faster to read
+                cloud = load_ply(model / "points.ply", cameras=colmap_camera_centres(model))
+                cloud.source = f"VGGT output {model} (points.ply + images)"
+                return cloud
+            return load_colmap(model)
+    raise PointSourceError(
+        f"{path}: no points3D.bin/.txt + images.bin/.txt here or in sparse/ -- "
+        "give a .ply, a COLMAP sparse model folder or a VGGT output folder"
+    )
+
+
+def find_scene_source(scene: Path) -> Optional[Path]:
+    """The first of :data:`SCENE_SOURCES` present in ``scene`` (None if the scene has no points)."""
+    for rel in SCENE_SOURCES:
+        cand = Path(scene) / rel
+        if (cand.is_file() and cand.suffix == ".ply") or (cand.is_dir() and is_colmap_model(cand)):
+            return cand
+    return None
+
+
+def source_files(path: Path) -> List[Path]:
+    """Files a source is read from (for cache keys)."""
+    path = Path(path)
+    if path.is_file():
+        side = path.parent / CAMERAS_JSON
+        return [path] + ([side] if side.is_file() else [])
+    files: List[Path] = []
+    for model in (path, path / "sparse"):
+        if is_colmap_model(model):
+            files = sorted(p for p in model.iterdir() if p.is_file() and p.stem in ("points3D", "images", "points"))
+            break
+    return files

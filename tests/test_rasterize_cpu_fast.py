@@ -1,0 +1,287 @@
+"""The compiled cpu-fast rasterizer against the torch path (the reference), a per-pixel absgrad
+reference and a short training run.
+
+The first run compiles the numba kernels (float32 and float64, ~40 s on 2 cores); numba caches
+them on disk, so later runs take a few seconds.
+"""
+
+from __future__ import annotations
+
+import numba
+import pytest
+import torch
+from nerfstudio.data.scene_box import SceneBox
+
+from naka_gs_plugin.model import rasterize_cpu_fast
+from naka_gs_plugin.model.projection import project_gaussians
+from naka_gs_plugin.model.rasterize import ALPHA_MIN, rasterization
+from naka_gs_plugin.model.rasterize_cpu_fast import rasterize_to_pixels_cpu_fast
+from naka_gs_plugin.model.rasterize_dense import rasterize_to_pixels_dense
+
+F32, F64 = torch.float32, torch.float64
+PARAMS = ("means", "quats", "scales", "opacities", "colors")
+
+
+def make_scene(n, width, height, n_cams=2, sh_degree=3, seed=0, dtype=F32, scale=0.06, hard=False):
+    """Random Gaussians in front of ``n_cams`` nearby OpenCV cameras; rasterization's inputs.
+
+    ``hard`` adds the stability cases to the first 12 Gaussians: collapsed (1e-12) and huge (1e3)
+    scales, saturated opacities (logits +-30), zero quaternions, a needle, and Gaussians behind
+    the camera and inside the near plane.
+    """
+    gen = torch.Generator().manual_seed(seed)
+    focal = 0.8 * width
+    z = 2.0 + 4.0 * torch.rand(n, generator=gen, dtype=F64)
+    x = (torch.rand(n, generator=gen, dtype=F64) - 0.5) * 1.2 * width / focal * z
+    y = (torch.rand(n, generator=gen, dtype=F64) - 0.5) * 1.2 * height / focal * z
+    means = torch.stack([x, y, z], dim=1)
+    scales = scale * torch.exp(0.5 * torch.randn(n, 3, generator=gen, dtype=F64))
+    quats = torch.randn(n, 4, generator=gen, dtype=F64)
+    logits = 2.0 * torch.randn(n, generator=gen, dtype=F64)
+    if hard:
+        scales[0] = 1e-12
+        scales[1] = 1e3
+        means[:2, :2] = 0.0
+        logits[[0, 2, 3]] = 30.0
+        logits[[4, 5]] = -30.0
+        scales[2] = 5 * scale
+        quats[6:8] = 0.0
+        scales[8] = torch.tensor([3.0, 1e-4, 1e-4], dtype=F64) * scale  # needle
+        means[9, 2] = -1.0  # behind the camera
+        means[10, 2] = 0.005  # inside the near plane
+        means[11, 2] = 0.3  # close: large on screen
+        logits[1] = 0.0  # the huge one is half transparent: the others stay visible
+    viewmats = torch.eye(4, dtype=F64).repeat(n_cams, 1, 1)
+    viewmats[1:, :3, 3] = 0.1 * torch.randn(n_cams - 1, 3, generator=gen, dtype=F64)
+    k = torch.tensor([[focal, 0, 0.5 * width], [0, focal, 0.5 * height], [0, 0, 1]], dtype=F64)
+    scene = dict(
+        means=means,
+        quats=quats,
+        scales=scales,
+        opacities=torch.sigmoid(logits),
+        colors=0.4 * torch.randn(n, (sh_degree + 1) ** 2, 3, generator=gen, dtype=F64),
+        viewmats=viewmats,
+        Ks=k.repeat(n_cams, 1, 1),
+    )
+    scene = {key: value.to(dtype) for key, value in scene.items()}
+    return dict(scene, width=width, height=height, sh_degree=sh_degree)
+
+
+def render_and_grads(fn, scene, weights, **kwargs):
+    """Render, backpropagate ``sum(weights * [colour, alpha])``; returns outputs, grads, meta."""
+    inputs = {k: scene[k].clone().requires_grad_() for k in PARAMS}
+    colors, alphas, meta = fn(**{**scene, **inputs}, **kwargs)
+    meta["means2d"].retain_grad()
+    (torch.cat([colors, alphas], -1) * weights).sum().backward()
+    return colors.detach(), alphas.detach(), {k: inputs[k].grad for k in PARAMS}, meta
+
+
+def _weights(scene, n_channels, dtype):
+    gen = torch.Generator().manual_seed(11)
+    shape = (scene["viewmats"].shape[0], scene["height"], scene["width"], n_channels + 1)
+    return torch.randn(shape, generator=gen, dtype=F64).to(dtype)
+
+
+def rel_err(a, b):
+    """Largest absolute difference relative to the largest magnitude of the reference."""
+    return float((a - b).abs().max() / b.abs().max().clamp(min=1e-30))
+
+
+@pytest.mark.parametrize("hard", [False, True])
+@pytest.mark.parametrize("render_mode", ["RGB+ED", "RGB", "D"])
+def test_float32_matches_torch_path(render_mode, hard):
+    scene = make_scene(400, 61, 45, hard=hard, seed=int(hard))
+    bg = torch.rand(2, 3, generator=torch.Generator().manual_seed(5))
+    kwargs = dict(render_mode=render_mode, backgrounds=bg, absgrad=True)
+    dim = {"RGB": 3, "D": 1}.get(render_mode, 4)
+    weights = _weights(scene, dim, F32)
+    fast = render_and_grads(rasterize_cpu_fast.rasterization, scene, weights, **kwargs)
+    ref = render_and_grads(rasterization, scene, weights, **kwargs)
+    (fc, fa, fg, fmeta), (rc, ra, rg, rmeta) = fast, ref
+    assert fc.shape == rc.shape == (2, 45, 61, dim) and fc.dtype == F32
+    assert 0.3 < float(ra.mean()) < 0.999  # covered and overlapping, not saturated everywhere
+    if hard:
+        assert (rmeta["radii"][:, [9, 10]] == 0).all() and (rmeta["radii"][0, [0, 1]] > 0).all()
+    assert (fa - ra).abs().max() <= 1e-5
+    if render_mode in ("RGB", "RGB+ED"):
+        assert (fc[..., :3] - rc[..., :3]).abs().max() <= 1e-5
+    if render_mode != "RGB":
+        # Depth is in scene units (2..6 here, float32 spacing 2.4e-7..4.8e-7 there): relative.
+        depth_f, depth_r = fc[..., -1], rc[..., -1]
+        assert ((depth_f - depth_r).abs() / depth_r.abs().clamp(min=1.0)).max() <= 1e-5
+    for k in PARAMS:  # float32 sums in a different order: relative to the largest component
+        if render_mode == "D" and k == "colors":
+            assert fg[k] is None and rg[k] is None
+            continue
+        assert rel_err(fg[k], rg[k]) <= 1e-4, k
+    assert rel_err(fmeta["means2d"].absgrad, rmeta["means2d"].absgrad) <= 1e-4
+    assert rel_err(fmeta["means2d"].grad, rmeta["means2d"].grad) <= 1e-4
+    for key in ("radii", "means2d", "depths", "conics", "opacities"):
+        assert torch.equal(fmeta[key], rmeta[key]), key
+    assert {k: v for k, v in fmeta.items() if not torch.is_tensor(v)} == {
+        k: v for k, v in rmeta.items() if not torch.is_tensor(v)
+    }
+
+
+@pytest.mark.parametrize("rasterize_mode", ["classic", "antialiased"])
+def test_float64_gradients_match_torch_autograd(rasterize_mode):
+    scene = make_scene(150, 40, 30, sh_degree=2, dtype=F64, hard=True, seed=3)
+    bg = torch.rand(2, 3, dtype=F64, generator=torch.Generator().manual_seed(2))
+    weights = _weights(scene, 4, F64)
+    results = []
+    for fn in (rasterize_cpu_fast.rasterization, rasterization):
+        background = bg.clone().requires_grad_()
+        inputs = {k: scene[k].clone().requires_grad_() for k in PARAMS}
+        colors, alphas, _ = fn(
+            **{**scene, **inputs},
+            backgrounds=background,
+            render_mode="RGB+ED",
+            rasterize_mode=rasterize_mode,
+        )
+        (torch.cat([colors, alphas], -1) * weights).sum().backward()
+        results.append((colors, alphas, [inputs[k].grad for k in PARAMS] + [background.grad]))
+    (fc, fa, fg), (rc, ra, rg) = results
+    assert torch.allclose(fc, rc, rtol=1e-9, atol=1e-9) and torch.allclose(fa, ra, rtol=0, atol=1e-9)
+    for name, fast, ref in zip(PARAMS + ("backgrounds",), fg, rg):
+        assert ref.abs().max() > 0, name
+        # 1e-4 relative per element; entries that cancel to ~0 get a floor of 1e-7 of the largest.
+        assert torch.allclose(fast, ref, rtol=1e-4, atol=1e-7 * float(ref.abs().max())), name
+
+
+def test_absgrad_matches_per_pixel_reference():
+    width, height = 12, 9
+    scene = make_scene(30, width, height, n_cams=1, sh_degree=0, dtype=F64, scale=0.1, seed=2)
+    proj = project_gaussians(
+        scene["means"], scene["quats"], scene["scales"], scene["viewmats"], scene["Ks"], width, height
+    )
+    feats = torch.rand(1, 30, 3, dtype=F64, generator=torch.Generator().manual_seed(4))
+    opac = scene["opacities"][None]
+    weights = torch.randn(1, height, width, 4, generator=torch.Generator().manual_seed(1), dtype=F64)
+    means2d = proj.means2d.clone().requires_grad_()
+    out, alpha = rasterize_to_pixels_cpu_fast(
+        means2d, proj.conics, feats, opac, proj.depths, proj.radii, width, height, absgrad=True
+    )
+    (torch.cat([out, alpha], -1) * weights).sum().backward()
+
+    expected = torch.zeros_like(proj.means2d)  # sum over pixels of |d(pixel's term)/d means2d|
+    for y in range(height):
+        for x in range(width):
+            m2d = proj.means2d.clone().requires_grad_()
+            o, a = rasterize_to_pixels_dense(m2d, proj.conics, feats, opac, proj.depths, proj.radii, width, height)
+            (grad,) = torch.autograd.grad((torch.cat([o, a], -1)[:, y, x] * weights[:, y, x]).sum(), m2d)
+            expected += grad.abs()
+    assert float(expected.sum()) > 1.0
+    assert torch.allclose(means2d.absgrad, expected, rtol=1e-9, atol=1e-12)
+    assert (means2d.absgrad >= means2d.grad.abs() - 1e-12).all()
+    assert (means2d.absgrad > means2d.grad.abs() + 1e-6).any()  # pixels do cancel somewhere
+
+
+def test_empty_scenes():
+    bg = torch.tensor([[0.2, 0.4, 0.6]])
+    none = torch.zeros(1, 0)
+    out, alpha = rasterize_to_pixels_cpu_fast(
+        none.reshape(1, 0, 2),
+        none.reshape(1, 0, 3),
+        none.reshape(1, 0, 3),
+        none,
+        none,
+        torch.zeros(1, 0, dtype=torch.int32),
+        5,
+        4,
+        backgrounds=bg,
+    )
+    assert out.shape == (1, 4, 5, 3) and (alpha == 0).all() and (out == bg).all()
+
+    scene = make_scene(30, 20, 16, n_cams=1, sh_degree=1)
+    scene["means"][:, 2] = -2.0  # everything behind the camera
+    means = scene["means"].clone().requires_grad_()
+    colors, alphas, meta = rasterize_cpu_fast.rasterization(**{**scene, "means": means}, backgrounds=bg)
+    (colors.sum() + alphas.sum()).backward()
+    assert (meta["radii"] == 0).all() and (alphas == 0).all() and torch.allclose(colors, bg.expand_as(colors))
+    assert (means.grad == 0).all()
+
+    faint = make_scene(30, 20, 16, n_cams=1, sh_degree=1)
+    faint["opacities"] = torch.full((30,), 0.5 * ALPHA_MIN)  # can never reach 1/255
+    _, alphas, _ = rasterize_cpu_fast.rasterization(**faint)
+    assert (alphas == 0).all()
+
+
+def test_results_do_not_depend_on_the_thread_count():
+    scene = make_scene(300, 70, 50, seed=7)
+    weights = _weights(scene, 3, F32)
+    before = numba.get_num_threads()
+    runs = []
+    try:
+        for threads in (1, 2):
+            numba.set_num_threads(threads)
+            runs.append(render_and_grads(rasterize_cpu_fast.rasterization, scene, weights, absgrad=True))
+    finally:
+        numba.set_num_threads(before)
+    (c1, a1, g1, m1), (c2, a2, g2, m2) = runs
+    assert torch.equal(c1, c2) and torch.equal(a1, a2)
+    assert all(torch.equal(g1[k], g2[k]) for k in PARAMS)
+    assert torch.equal(m1["means2d"].absgrad, m2["means2d"].absgrad)
+
+
+def test_half_precision_is_refused():
+    x = torch.zeros(1, 1, 3, dtype=torch.float16)
+    radii = torch.ones(1, 1, dtype=torch.int32)
+    with pytest.raises(ValueError, match="float32/float64"):
+        rasterize_to_pixels_cpu_fast(x[..., :2], x, x, x[..., 0], x[..., 0], radii, 4, 4)
+
+
+def _train(rasterizer, toy_scene, steps=30):
+    """``steps`` of splatfacto training (with densification) on the toy scene; returns the model
+    and its last loss."""
+    from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig
+    from naka_gs_plugin.enhance.cli import load_rgb
+    from naka_gs_plugin.model.naka_gs_model import NakaGSModelConfig
+
+    out = LowLightDataParserConfig(data=toy_scene, downscale_factor=1).setup().get_dataparser_outputs("train")
+    cameras = out.cameras
+    images = [load_rgb(p).float() / 255.0 for p in out.image_filenames]
+    torch.manual_seed(0)
+    g = torch.Generator().manual_seed(0)
+    xyz = (torch.rand(250, 3, generator=g) - 0.5) * 1.2
+    rgb = (torch.rand(250, 3, generator=g) * 255).to(torch.uint8)
+    cfg = NakaGSModelConfig(
+        sh_degree=1,
+        rasterizer=rasterizer,
+        warmup_length=2,
+        refine_every=6,
+        densify_grad_thresh=1e-4,
+        densify_size_thresh=0.02,
+        reset_alpha_every=100,
+    )
+    box = SceneBox(aabb=torch.tensor([[-1.0, -1, -1], [1, 1, 1]]))
+    model = cfg.setup(scene_box=box, num_train_data=len(images), seed_points=(xyz, rgb))
+    opts = {k: torch.optim.Adam([p], lr=1e-3) for k, p in model.gauss_params.items()}
+    model.train()
+    counts = []
+    for step in range(steps):
+        model.step, model.optimizers = step, opts
+        i = step % len(images)
+        outputs = model.get_outputs(cameras[i : i + 1])
+        loss = model.get_loss_dict(outputs, {"image": images[i]})["main_loss"]
+        loss.backward()
+        for opt in opts.values():
+            opt.step()
+            opt.zero_grad()
+        model.step_post_backward(step)
+        counts.append(model.num_points)
+    return model, float(loss), counts
+
+
+def test_training_matches_torch_path(toy_scene):
+    fast, fast_loss, fast_counts = _train("cpu-fast", toy_scene)
+    ref, ref_loss, ref_counts = _train("torch", toy_scene)
+    assert fast._backend_logged == "cpu-fast" and ref._backend_logged == "torch"
+    assert len(set(ref_counts)) > 1, "densification never changed the Gaussian count"
+    # Same Gaussians after every step: densification saw the same gradients and radii.
+    assert fast_counts == ref_counts
+    # Both are float32 and differ per step by summation order only (~1e-6 relative, see
+    # test_float32_matches_torch_path); 30 Adam steps (whose update direction is the gradient's sign
+    # for tiny gradients) amplify that, but not beyond 1e-3 of the loss.
+    assert abs(fast_loss - ref_loss) <= 1e-3 * ref_loss
+    for k, p in ref.gauss_params.items():
+        assert rel_err(fast.gauss_params[k].data, p.data) <= 1e-2, k
