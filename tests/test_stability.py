@@ -317,3 +317,20 @@ def test_fifty_training_steps_have_finite_loss(scene, tmp_path, toy_scene):
     assert np.isfinite(losses).all()
     for name, param in trainer.pipeline.model.gauss_params.items():
         assert torch.isfinite(param).all(), name
+
+
+@pytest.mark.parametrize("sh_degree", [0, 3])
+def test_saturated_seed_colours_give_finite_colour_parameters(sh_degree):
+    """Pure white / black seed points: splatfacto's logit(eps=1e-10) gave +inf in float32 at sh_degree 0."""
+    from nerfstudio.data.scene_box import SceneBox
+
+    from naka_gs_plugin.model.naka_gs_model import NakaGSModelConfig
+
+    xyz = torch.rand(6, 3) - 0.5
+    rgb = torch.tensor([[255, 255, 255], [0, 0, 0], [255, 0, 128]] * 2, dtype=torch.uint8)
+    box = SceneBox(aabb=torch.tensor([[-1.0, -1, -1], [1, 1, 1]]))
+    model = NakaGSModelConfig(sh_degree=sh_degree).setup(scene_box=box, num_train_data=2, seed_points=(xyz, rgb))
+    dc = model.gauss_params["features_dc"]
+    assert torch.isfinite(dc).all()
+    if sh_degree == 0:  # colours are sigmoid(dc): white and black stay (almost) white and black
+        assert torch.sigmoid(dc[0]).min() > 0.999 and torch.sigmoid(dc[1]).max() < 1e-3

@@ -99,7 +99,9 @@ class NakaGSModel(SplatfactoModel):
         if seed_rgb is not None:
             self.seed_points = (self.seed_points[0], seed_rgb)
             rgb = seed_rgb.float() / 255.0
-            dc = RGB2SH(rgb) if self.config.sh_degree > 0 else torch.logit(rgb, eps=1e-10)
+            # splatfacto uses logit(eps=1e-10), but 1 - 1e-10 == 1 in float32: a pure white (255) seed
+            # point got an infinite colour logit with sh_degree 0. 1e-4 keeps |logit| <= 9.2.
+            dc = RGB2SH(rgb) if self.config.sh_degree > 0 else torch.logit(rgb, eps=1e-4)
             self.gauss_params["features_dc"].data.copy_(dc)
         self._backend_logged: Optional[str] = None
 
