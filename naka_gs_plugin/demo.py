@@ -144,7 +144,7 @@ class Demo:
         lines: List[str] = [
             f"{report['train_views']} dark training views (mean {report['mean_input_brightness']:.3f}): "
             f"PSNR vs truth {report['psnr_input_vs_truth_db']:.2f} dB as captured, "
-            f"{report['psnr_enhanced_vs_truth_db']:.2f} dB after Naka"
+            f"{report['psnr_enhanced_vs_truth_db']:.2f} dB after enhancement"
         ]
         for name in ("naka-gs", "baseline"):
             if name in report:
