@@ -425,7 +425,8 @@ def markdown_table(results: Dict[str, Any]) -> str:
             continue
         s = run["stages"]
         pts = run.get("points") or {}
-        seed = f"{pts.get('source', '?')}" + (f" ({pts['count']})" if pts.get("count") else "")
+        kind = str(pts.get("source", "?")).split(" ")[0]  # "PLY /path/points.ply" -> "PLY"
+        seed = kind + (f" ({pts['count']})" if pts.get("count") else "")
         for e in run["evals"]:
             lp = f"{e['lpips']:.3f}" if "lpips" in e else "n/a"
             rows.append(
