@@ -1,0 +1,136 @@
+"""Lean correction inference: bfloat16 fused GroupNorm/GELU kernels, the in-place forward, heap reuse."""
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+import naka_gs_plugin.enhance.correction as correction
+from naka_gs_plugin.enhance.correction import MODES, CorrectionRunner, lean_predict_maps
+from naka_gs_plugin.enhance.correction_net import ChromaGuided, ChromaGuidedConfig
+from naka_gs_plugin.enhance.lean_ops import (
+    _group_moments,
+    _patterns,
+    gelu_table,
+    group_norm_gelu,
+    group_norm_gelu_reference,
+    supported,
+)
+
+MID = ChromaGuidedConfig(widths=(8, 16, 32, 64))
+
+
+def _bf16(x: torch.Tensor) -> torch.Tensor:
+    return x.to(torch.bfloat16).contiguous(memory_format=torch.channels_last)
+
+
+def _norm(c: int, seed: int = 0) -> torch.nn.GroupNorm:
+    torch.manual_seed(seed)
+    norm = torch.nn.GroupNorm(8 if c % 8 == 0 else 1, c)
+    torch.nn.init.normal_(norm.weight)
+    torch.nn.init.normal_(norm.bias)
+    return norm.requires_grad_(False).to(torch.bfloat16)  # as in the lean network
+
+
+def test_gelu_table_is_pytorch_gelu_of_every_bfloat16_value():
+    every = torch.arange(1 << 16, dtype=torch.int32).to(torch.int16).view(torch.bfloat16)
+    want = F.gelu(every).view(torch.int16).numpy().view(np.uint16)  # PyTorch's own bfloat16 kernel
+    got = gelu_table()
+    # PyTorch's vectorised bfloat16 kernel flushes subnormals (|v| < 2^-126) to zero, the table's
+    # float32 evaluation keeps them: the two may differ only there.
+    finite = torch.isfinite(every).numpy()
+    differ = finite & (got != want)
+    magnitude = lambda bits: np.abs(torch.from_numpy(bits.view(np.int16)).view(torch.bfloat16).float().numpy())
+    assert differ.sum() < 1000 and (magnitude(got[differ]) <= 2.0**-125).all()
+    assert (magnitude(want[differ]) < 2.0**-126).all()
+    assert np.array_equal(got[finite & ~differ], want[finite & ~differ])
+
+
+@pytest.mark.parametrize("residual", [False, True])
+@pytest.mark.parametrize("act", [False, True])
+@pytest.mark.parametrize("shape", [(32, 37, 53), (64, 9, 11), (3, 41, 40)])
+def test_fused_group_norm_gelu_matches_pytorch_to_one_rounding(shape, act, residual):
+    g = torch.Generator().manual_seed(3)
+    x = _bf16(torch.randn(1, *shape, generator=g) * 3 + 1)
+    r = _bf16(torch.randn(1, *shape, generator=g)) if residual else None
+    norm = _norm(shape[0])
+    got, want = group_norm_gelu(x, norm, r, act), group_norm_gelu_reference(x, norm, r, act)
+    assert got.dtype == torch.bfloat16 and got.is_contiguous(memory_format=torch.channels_last)
+    # The normalisation is computed as x * a + b in float32 (PyTorch: (x - mean) * rstd * gamma + beta),
+    # so a normalised value may round to the neighbouring bfloat16 number (8 significant bits), which
+    # the residual sum and GELU (slope <= 1.13) carry on: rarely, and never by more than that step.
+    scale = F.group_norm(x.float(), norm.num_groups, norm.weight.float(), norm.bias.float(), norm.eps).abs()
+    if r is not None:
+        scale = scale + r.float().abs()
+    diff = (got.float() - want.float()).abs()
+    assert (diff <= 2.0**-7 * (1.13 * scale + want.float().abs()) + 1e-6).all()
+    assert (diff > 0).float().mean() < 0.05
+
+
+def test_group_moments_free_of_cancellation():
+    """A channel whose mean is 100x its spread: float32 sums of squares would cancel; the shift does not."""
+    rng = np.random.default_rng(0)
+    vals = 256.0 + 2.0 * rng.integers(0, 3, size=(1, 8, 300, 500))  # exactly representable in bfloat16
+    x = _bf16(torch.from_numpy(vals).float())
+    mean, var = _group_moments(_patterns(x), 8)
+    per_group = vals.reshape(8, -1)
+    assert np.allclose(mean, per_group.mean(1), rtol=0, atol=1e-9)
+    assert np.allclose(var, per_group.var(1), rtol=1e-9)
+
+
+def test_supported_only_for_bfloat16_channels_last_single_images():
+    x = torch.randn(1, 8, 5, 6)
+    assert not supported(x) and not supported(x.to(torch.bfloat16))
+    assert supported(_bf16(x)) and not supported(_bf16(torch.randn(2, 8, 5, 6)))
+    with pytest.raises(ValueError, match="bfloat16 channels-last"):
+        group_norm_gelu(x, _norm(8))
+
+
+def test_lean_forward_equals_predict_maps_in_float32():
+    torch.manual_seed(0)
+    net = ChromaGuided(MID).eval()
+    low, naka = torch.rand(1, 3, 45, 61) * 0.1, torch.rand(1, 3, 45, 61)
+    with torch.no_grad():
+        want = net.predict_maps(low, naka)
+        got = lean_predict_maps(net, low, naka)
+    for a, b in zip(got, want):
+        assert (a - b).abs().max() < 1e-6
+
+
+def test_lean_mode_is_bfloat16_body_with_float32_heads_and_close_to_exact():
+    torch.manual_seed(0)
+    net = ChromaGuided(MID).eval()
+    runner = CorrectionRunner(net, "lean")
+    assert runner.net.stem.conv.weight.dtype == torch.bfloat16 and runner.net.mul_head.weight.dtype == torch.float32
+    assert next(net.parameters()).dtype == torch.float32  # the caller's network is untouched
+    low, naka = torch.rand(1, 3, 70, 90) * 0.1, torch.rand(1, 3, 70, 90)
+    with torch.no_grad():
+        out, exact = runner(low, naka), net(low, naka)
+        autocast = CorrectionRunner(net, "bf16")(low, naka)
+    assert out["mul_map"].dtype == torch.float32 and out["mul_map"].shape == (1, 1, 70, 90)
+    # Random weights on noise amplify rounding: the bound is the bf16-autocast mode's, which holds
+    # the quality bar on real images (README).
+    err = (out["enhanced"] - exact["enhanced"]).abs().mean()
+    assert err < 2e-2 and err < 2 * (autocast["enhanced"] - exact["enhanced"]).abs().mean()
+    with pytest.raises(ValueError, match="untiled"):
+        CorrectionRunner(net, MODES["lean"].__class__(lean=True, tile=64))
+
+
+def test_reuse_freed_memory_restores_glibc_defaults(monkeypatch):
+    calls = []
+
+    class FakeLibc:
+        def mallopt(self, option, value):
+            calls.append(("mallopt", option, value))
+            return 1
+
+        def malloc_trim(self, pad):
+            calls.append(("trim", pad))
+            return 1
+
+    monkeypatch.setattr(correction, "_glibc", lambda: FakeLibc())
+    with pytest.raises(RuntimeError):
+        with correction.reuse_freed_memory():
+            assert calls == [("mallopt", -4, 0), ("mallopt", -1, 1 << 30)]
+            raise RuntimeError("the forward failed")
+    assert calls[2:] == [("mallopt", -1, 128 * 1024), ("mallopt", -4, 65536), ("trim", 0)]
