@@ -266,15 +266,18 @@ def test_bench_times_modes_in_fresh_processes_and_writes_the_sheet(toy_scene, tm
     bench = CorrectionBench(
         image=views[0],
         weights=str(save_correction(_net(SMALL), tmp_path / "net.pt")),
-        modes=("half-bf16",),
+        modes=("half-bf16", "lean"),
         quality_modes=(),
+        threads=1,
+        repeats=2,
         json_out=tmp_path / "bench.json",
         sheet=tmp_path / "sheet.png",
         sheet_views=views,
         sheet_width=32,
     )
     results = bench.main()
-    assert [r["mode"] for r in results] == ["exact", "half-bf16"]
-    assert results[0]["max_abs"] == 0 and results[1]["max_abs"] > 0
+    assert [r["mode"] for r in results] == ["exact", "half-bf16", "lean"]
+    assert results[0]["max_abs"] == 0 and results[1]["max_abs"] > 0 and results[2]["max_abs"] > 0
+    assert all(r["threads"] == 1 for r in results)
     assert all(r["seconds"] > 0 and r["peak_gb"] > 0.1 for r in results)
     assert Image.open(tmp_path / "sheet.png").size == (2 * 32, 3 * 24)  # 2 views x (low, Naka, corrected)
