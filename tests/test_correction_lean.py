@@ -134,3 +134,14 @@ def test_reuse_freed_memory_restores_glibc_defaults(monkeypatch):
             assert calls == [("mallopt", -4, 0), ("mallopt", -1, 1 << 30)]
             raise RuntimeError("the forward failed")
     assert calls[2:] == [("mallopt", -1, 128 * 1024), ("mallopt", -4, 65536), ("trim", 0)]
+
+
+def test_fused_kernels_keep_pytorch_thread_count():
+    """numba's OpenMP pool shares the runtime with PyTorch; the kernels must not change its count."""
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        group_norm_gelu(_bf16(torch.randn(1, 8, 6, 5)), _norm(8))
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(threads)

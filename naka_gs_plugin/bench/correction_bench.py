@@ -80,8 +80,9 @@ def run_child(
     import numba
     import torch
 
-    torch.set_num_threads(threads)
+    # numba first: starting its OpenMP pool resets the shared runtime's (hence PyTorch's) thread count.
     numba.set_num_threads(threads)
+    torch.set_num_threads(threads)
 
     from naka_gs_plugin.enhance.correction import MODES, CorrectionRunner
     from naka_gs_plugin.enhance.correction_net import apply_maps

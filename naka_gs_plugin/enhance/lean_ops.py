@@ -19,8 +19,10 @@ writing bfloat16 through its 16-bit pattern (numba has no bfloat16 type).
 
 from __future__ import annotations
 
+import functools
 from typing import Optional
 
+import numba
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -145,6 +147,23 @@ def supported(x: Tensor) -> bool:
     )
 
 
+def _threads_as_torch(fn):
+    """Run numba kernels on PyTorch's intra-op thread count, and keep that count: numba's OpenMP
+    pool, started on first use, resets the shared OpenMP runtime's (hence PyTorch's) count."""
+
+    def wrapped(*args, **kwargs):
+        threads = torch.get_num_threads()
+        numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            if torch.get_num_threads() != threads:
+                torch.set_num_threads(threads)
+
+    return functools.wraps(fn)(wrapped)
+
+
+@_threads_as_torch
 def group_norm_gelu(
     x: Float[Tensor, "1 C H W"],
     norm: torch.nn.GroupNorm,
