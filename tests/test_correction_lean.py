@@ -93,8 +93,8 @@ def test_lean_forward_equals_predict_maps_in_float32():
     with torch.no_grad():
         want = net.predict_maps(low, naka)
         got = lean_predict_maps(net, low, naka)
-    for a, b in zip(got, want):
-        assert (a - b).abs().max() < 1e-6
+    for a, b in zip(got, want):  # float32 summation order only (the decoders' split convolutions)
+        assert (a - b).abs().max() < 1e-5
 
 
 def test_lean_mode_is_bfloat16_body_with_float32_heads_and_close_to_exact():

@@ -35,8 +35,9 @@ import dataclasses
 import hashlib
 import math
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
-from typing import Dict, Iterator, List, Literal, Optional, Tuple, Union
+from typing import Callable, Dict, Iterator, List, Literal, Optional, Tuple, Union
 
 import torch
 import torch.nn.functional as F
@@ -456,47 +457,60 @@ def _res_block(m: ResBlock, x: Tensor) -> Tensor:
     return _unit(m.unit2, _unit(m.unit1, x), residual=x)
 
 
-def _stage(m: Stage, x: Tensor) -> Tensor:
-    x = _unit(m.conv_in, x)
+def _stage_steps(m: Stage) -> Iterator[Callable[[Tensor], Tensor]]:
+    """A :class:`Stage` as single-input steps, so the caller can drop each input as soon as it is used."""
+    yield partial(_unit, m.conv_in)
     for block in m.res:
-        x = _res_block(block, x)
+        yield partial(_res_block, block)
     se = m.se
-    gate = torch.sigmoid(se.fc2(se.act(se.fc1(x.mean(dim=(2, 3), keepdim=True)))))
-    return x.mul_(gate)
+    yield lambda x: x.mul_(torch.sigmoid(se.fc2(se.act(se.fc1(x.mean(dim=(2, 3), keepdim=True))))))
 
 
 def lean_predict_maps(
     net: ChromaGuided, low: Float[Tensor, "B 3 H W"], naka: Float[Tensor, "B 3 H W"]
 ) -> Tuple[Float[Tensor, "B 1 H W"], Float[Tensor, "B 3 H W"]]:
     """``net.predict_maps`` for inference (no autograd): the same operations in the same order, but
-    every intermediate that is not needed later is overwritten in place or dropped at once, so the
-    peak holds one decoder level's tensors instead of the whole graph's. The body runs in the dtype
-    and memory format of ``net.stem``'s weights; the input standardisation is computed in float32
-    and the heads in theirs. Equal to ``predict_maps`` for a float32 network (tested)."""
+    each activation is rebound as soon as the next one exists (``x = step(x)``), overwritten in place
+    where the op allows, and skips are released at their decoder, so the peak holds one decoder
+    level's tensors instead of the whole graph's. The body runs in the dtype and memory format of
+    ``net.stem``'s weights; the input standardisation is computed in float32 and the heads in theirs.
+    Equal to ``predict_maps`` for a float32 network (tested)."""
     body = net.stem.conv.weight
+    layout = torch.channels_last if body.is_contiguous(memory_format=torch.channels_last) else torch.contiguous_format
     delta = naka - low
     x = torch.cat([low, naka, delta, standardize(low), standardize(naka), standardize(delta)], dim=1)
-    layout = torch.channels_last if body.is_contiguous(memory_format=torch.channels_last) else torch.contiguous_format
-    x = x.to(body.dtype).contiguous(memory_format=layout)
     del delta
+    x = x.to(dtype=body.dtype, memory_format=layout)
     x = _unit(net.stem, x)
     skips = []
     for enc in (net.enc1, net.enc2, net.enc3):
-        skips.append(_stage(enc.stage, x))
-        x = _unit(enc.down, skips[-1])
-    x = _stage(net.bottleneck, x)
+        for step in _stage_steps(enc.stage):
+            x = step(x)
+        skips.append(x)
+        x = _unit(enc.down, x)
+    for step in _stage_steps(net.bottleneck):
+        x = step(x)
     for dec in (net.dec3, net.dec2, net.dec1):
+        # conv(cat([up, skip])) as conv(skip, W_skip) + conv(up, W_up): the concatenation (3x a skip's
+        # size at full resolution) is never built, and each operand is dropped right after its conv.
         skip = skips.pop()
-        x = torch.cat([F.interpolate(x, size=skip.shape[-2:], mode="bilinear", align_corners=False), skip], dim=1)
+        conv_in = dec.stage.conv_in
+        w_up, w_skip = conv_in.conv.weight.split([x.shape[1], skip.shape[1]], dim=1)
+        y = F.conv2d(skip, w_skip, padding=1)
+        size = skip.shape[-2:]
         del skip
-        x = _stage(dec.stage, x)
-    x = _res_block(net.fuse[1], _unit(net.fuse[0], x))
+        x = F.conv2d(F.interpolate(x, size=size, mode="bilinear", align_corners=False), w_up, padding=1).add_(y)
+        del y
+        x = norm_act(x, conv_in.norm, act=True)
+        for step in list(_stage_steps(dec.stage))[1:]:
+            x = step(x)
+    x = _unit(net.fuse[0], x)
+    x = _res_block(net.fuse[1], x)
     # Both heads in one convolution (a 1- and a 3-filter conv each cost a full pass over x).
     weight = torch.cat([net.mul_head.weight, net.add_head.weight])
-    h = F.conv2d(x.to(weight.dtype), weight, torch.cat([net.mul_head.bias, net.add_head.bias]), padding=1)
-    del x
-    mul = 1.0 + net.config.mul_range * torch.tanh(h[:, :1])
-    add = net.config.add_range * torch.tanh(h[:, 1:])
+    x = F.conv2d(x.to(weight.dtype), weight, torch.cat([net.mul_head.bias, net.add_head.bias]), padding=1)
+    mul = 1.0 + net.config.mul_range * torch.tanh(x[:, :1])
+    add = net.config.add_range * torch.tanh(x[:, 1:])
     return mul, add
 
 

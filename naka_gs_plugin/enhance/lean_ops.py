@@ -169,11 +169,13 @@ def group_norm_gelu(
     norm: torch.nn.GroupNorm,
     residual: Optional[Float[Tensor, "1 C H W"]] = None,
     act: bool = True,
+    inplace: bool = False,
 ) -> Float[Tensor, "1 C H W"]:
     """``gelu(group_norm(x) + residual)`` (GELU if ``act``, residual if given) in bfloat16, fused.
 
     ``x`` and ``residual``: bfloat16, channels-last (see :func:`supported`); ``norm``'s affine
-    parameters may be float32 or bfloat16. Returns a new channels-last bfloat16 tensor."""
+    parameters may be float32 or bfloat16. Returns a new channels-last bfloat16 tensor, or ``x``
+    overwritten if ``inplace`` (each element is read before it is written, by the same thread)."""
     if not supported(x) or (residual is not None and (not supported(residual) or residual.shape != x.shape)):
         raise ValueError("group_norm_gelu needs bfloat16 channels-last [1, C, H, W] CPU tensors of one shape")
     src = _patterns(x)
@@ -184,7 +186,7 @@ def group_norm_gelu(
     weight, bias = norm.weight.detach().double(), norm.bias.detach().double()
     scale = (weight * rstd).float()
     shift = (bias - mean_c * weight * rstd).float()
-    out = torch.empty_like(x, memory_format=torch.channels_last)
+    out = x if inplace else torch.empty_like(x, memory_format=torch.channels_last)
     res = _patterns(residual) if residual is not None else np.empty((0, 0), np.uint16)
     _apply(src, scale.numpy(), shift.numpy(), res, gelu_table(), act, _patterns(out))
     return out
@@ -196,9 +198,10 @@ def norm_act(
     residual: Optional[Float[Tensor, "1 C H W"]] = None,
     act: bool = True,
 ) -> Float[Tensor, "1 C H W"]:
-    """:func:`group_norm_gelu` where it applies (:func:`supported`), else the PyTorch reference."""
+    """:func:`group_norm_gelu` in place of ``x`` where it applies (:func:`supported`), else the PyTorch
+    reference; either way ``x`` (a fresh convolution output) must not be used afterwards."""
     if supported(x) and (residual is None or (supported(residual) and residual.shape == x.shape)):
-        return group_norm_gelu(x, norm, residual, act)
+        return group_norm_gelu(x, norm, residual, act, inplace=True)
     return group_norm_gelu_reference(x, norm, residual, act)
 
 
