@@ -90,15 +90,19 @@ def rel_err(a, b):
 @pytest.mark.parametrize("hard", [False, True])
 @pytest.mark.parametrize("render_mode", ["RGB+ED", "RGB", "D"])
 def test_float32_matches_torch_path(render_mode, hard):
+    """float32 cpu-fast against the torch path on the same inputs in float64: cpu-fast projects in
+    float64 and rounds, so the torch path's own float32 rounding (as large as cpu-fast's error
+    here) would blur the comparison."""
     scene = make_scene(400, 61, 45, hard=hard, seed=int(hard))
+    scene64 = {k: v.double() if torch.is_tensor(v) else v for k, v in scene.items()}
     bg = torch.rand(2, 3, generator=torch.Generator().manual_seed(5))
-    kwargs = dict(render_mode=render_mode, backgrounds=bg, absgrad=True)
+    kwargs = dict(render_mode=render_mode, absgrad=True)
     dim = {"RGB": 3, "D": 1}.get(render_mode, 4)
     weights = _weights(scene, dim, F32)
-    fast = render_and_grads(rasterize_cpu_fast.rasterization, scene, weights, **kwargs)
-    ref = render_and_grads(rasterization, scene, weights, **kwargs)
+    fast = render_and_grads(rasterize_cpu_fast.rasterization, scene, weights, backgrounds=bg, **kwargs)
+    ref = render_and_grads(rasterization, scene64, weights.double(), backgrounds=bg.double(), **kwargs)
     (fc, fa, fg, fmeta), (rc, ra, rg, rmeta) = fast, ref
-    assert fc.shape == rc.shape == (2, 45, 61, dim) and fc.dtype == F32
+    assert fc.shape == rc.shape == (2, 45, 61, dim) and fc.dtype == F32 and fmeta["means2d"].dtype == F32
     assert 0.3 < float(ra.mean()) < 0.999  # covered and overlapping, not saturated everywhere
     if hard:
         assert (rmeta["radii"][:, [9, 10]] == 0).all() and (rmeta["radii"][0, [0, 1]] > 0).all()
@@ -116,8 +120,10 @@ def test_float32_matches_torch_path(render_mode, hard):
         assert rel_err(fg[k], rg[k]) <= 1e-4, k
     assert rel_err(fmeta["means2d"].absgrad, rmeta["means2d"].absgrad) <= 1e-4
     assert rel_err(fmeta["means2d"].grad, rmeta["means2d"].grad) <= 1e-4
-    for key in ("radii", "means2d", "depths", "conics", "opacities"):
-        assert torch.equal(fmeta[key], rmeta[key]), key
+    assert torch.equal(fmeta["radii"], rmeta["radii"])
+    for key in ("means2d", "depths", "conics", "opacities"):
+        scale = float(rmeta[key].abs().max())
+        assert torch.allclose(fmeta[key].double(), rmeta[key], rtol=1e-6, atol=1e-7 * scale), key
     assert {k: v for k, v in fmeta.items() if not torch.is_tensor(v)} == {
         k: v for k, v in rmeta.items() if not torch.is_tensor(v)
     }
@@ -221,6 +227,48 @@ def test_results_do_not_depend_on_the_thread_count():
     assert torch.equal(c1, c2) and torch.equal(a1, a2)
     assert all(torch.equal(g1[k], g2[k]) for k in PARAMS)
     assert torch.equal(m1["means2d"].absgrad, m2["means2d"].absgrad)
+
+
+def test_interleaved_renders_and_retained_graphs():
+    """A render whose graph is retained keeps its scratch memory while other renders run."""
+    scenes = [make_scene(200, 40, 30, seed=seed) for seed in (8, 9)]
+    weights = [_weights(sc, 3, F32) for sc in scenes]
+    alone = [render_and_grads(rasterize_cpu_fast.rasterization, sc, w)[2] for sc, w in zip(scenes, weights)]
+    inputs = [{k: sc[k].clone().requires_grad_() for k in PARAMS} for sc in scenes]
+
+    def loss(i):
+        colors, alphas, _ = rasterize_cpu_fast.rasterization(**{**scenes[i], **inputs[i]})
+        return (torch.cat([colors, alphas], -1) * weights[i]).sum()
+
+    first = loss(0)
+    first.backward(retain_graph=True)
+    second = loss(1)  # renders while the first graph is still alive
+    first.backward()  # the retained graph again: the same gradients once more
+    second.backward()
+    for k in PARAMS:
+        assert torch.allclose(inputs[0][k].grad, 2 * alone[0][k], rtol=1e-6, atol=0), k
+        assert torch.equal(inputs[1][k].grad, alone[1][k]), k
+
+
+def test_backward_without_the_forward_store_gives_the_same_results(monkeypatch):
+    """Beyond VIS_STORE_MAX the backward recomputes exp(-sigma) instead of reading the forward's."""
+    scene = make_scene(300, 50, 40, seed=6, hard=True)
+    weights = _weights(scene, 4, F32)
+    kwargs = dict(render_mode="RGB+ED", absgrad=True)
+    stored = render_and_grads(rasterize_cpu_fast.rasterization, scene, weights, **kwargs)
+    monkeypatch.setattr(rasterize_cpu_fast, "VIS_STORE_MAX", 0)
+    kernel, store_sizes = rasterize_cpu_fast._forward_kernel, []
+
+    def forward_kernel(*args):
+        store_sizes.append(args[-2].size)  # vis_store
+        return kernel(*args)
+
+    monkeypatch.setattr(rasterize_cpu_fast, "_forward_kernel", forward_kernel)
+    recomputed = render_and_grads(rasterize_cpu_fast.rasterization, scene, weights, **kwargs)
+    assert store_sizes == [0]  # the fallback ran
+    assert torch.equal(stored[0], recomputed[0]) and torch.equal(stored[1], recomputed[1])
+    assert all(torch.equal(stored[2][k], recomputed[2][k]) for k in PARAMS)
+    assert torch.equal(stored[3]["means2d"].absgrad, recomputed[3]["means2d"].absgrad)
 
 
 def test_half_precision_is_refused():

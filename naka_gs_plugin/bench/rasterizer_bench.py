@@ -73,7 +73,8 @@ class BenchConfig:
     threads: int = 2
     """Threads (torch intra-op and numba) of the main runs; cpu-fast is also run with 1."""
     dense_budget: int = 20_000_000
-    """Largest pixels x Gaussians product the dense reference renders in one go."""
+    """Largest pixels x Gaussians product the dense reference renders in one go; 0 skips the dense
+    reference (its columns show "-")."""
     viewer_resolution: str = "441x293"
     """Image size of the viewer frame-time runs (one per size, cpu-fast and torch)."""
     profile_case: str = "100000@441x293"
@@ -181,8 +182,9 @@ def _renderer(method: str):
 def _set_threads(threads: int) -> None:
     import numba
 
-    torch.set_num_threads(threads)
+    # numba first: starting its OpenMP pool resets the shared runtime's (hence PyTorch's) thread count.
     numba.set_num_threads(threads)
+    torch.set_num_threads(threads)
 
 
 def _time_renders(scene: Dict, width: int, height: int, method: str, repeats: int, device: str):
@@ -279,7 +281,7 @@ def _viewer_frame(method: str, n: int, width: int, height: int, threads: int, re
 
 def _stage_profile(n: int, width: int, height: int, threads: int, repeats: int) -> Dict[str, float]:
     """Median wall seconds per stage of one cpu-fast forward+backward (same loss as the table)."""
-    from naka_gs_plugin.model.projection import project_gaussians, sh_colors
+    from naka_gs_plugin.model.project_cpu_fast import project_gaussians, sh_colors
     from naka_gs_plugin.model.rasterize_cpu_fast import profile_stages
 
     _set_threads(threads)
@@ -292,7 +294,7 @@ def _stage_profile(n: int, width: int, height: int, threads: int, repeats: int) 
         proj = project_gaussians(p["means"], p["quats"], p["scales"], p["viewmats"], p["Ks"], width, height)
         (proj.means2d.sum() + proj.conics.sum() + proj.depths.sum()).backward()
         t1 = time.perf_counter()
-        sh_colors(p["means"], p["colors"][None], p["viewmats"], SH_DEGREE).sum().backward()
+        sh_colors(p["means"], p["colors"], p["viewmats"], SH_DEGREE).sum().backward()
         t2 = time.perf_counter()
         p = {k: v.detach().clone().requires_grad_(k not in ("viewmats", "Ks")) for k, v in scene.items()}
         with profile_stages() as stages:
@@ -300,7 +302,7 @@ def _stage_profile(n: int, width: int, height: int, threads: int, repeats: int) 
             colors, alphas, _ = render(**p, width=width, height=height, sh_degree=SH_DEGREE)
             (colors.square().mean() + alphas.mean()).backward()
             total = time.perf_counter() - t3
-        row = {"projection f+b (torch)": t1 - t0, "SH colours f+b (torch)": t2 - t1, **stages}
+        row = {"projection f+b (numba)": t1 - t0, "SH colours f+b (numba)": t2 - t1, **stages}
         # Projection and SH are timed in their own calls, so on a busy machine this can go negative.
         row["rest: total - rows above"] = total - sum(row.values())
         row["total f+b"] = total
@@ -339,6 +341,9 @@ def run_cases(cfg: BenchConfig) -> Dict:
             radius, pairs = scene_stats(make_scene(n, width, height), width, height)
             row = {"gaussians": n, "resolution": res, "mean_radius_px": radius, "pairs": pairs}
             for method in METHODS:
+                if method == "dense" and cfg.dense_budget == 0:
+                    row[method] = None
+                    continue
                 console.log(f"{method} {n} Gaussians at {res}, {cfg.threads} threads ...")
                 row[method] = _run_isolated(ctx, _run_case, method, n, width, height, cfg.threads, cfg)
             if cfg.threads != 1:
@@ -381,7 +386,7 @@ def render_table(rows: List[Dict], cfg: BenchConfig) -> Table:
     for row in rows:
         fast, ref, dense = row["cpu-fast"], row["torch"], row["dense"]
         one = row.get("cpu-fast-1")
-        star = "*" if "window" in dense else ""
+        star = "*" if dense is not None and "window" in dense else ""
         table.add_row(
             f"{row['gaussians']:,}",
             row["resolution"],
@@ -395,11 +400,11 @@ def render_table(rows: List[Dict], cfg: BenchConfig) -> Table:
             f"{ref['fwd_bwd_s']:.3f}",
             f"{ref['fwd_s']:.3f}",
             f"{ref['peak_mb']:.0f}",
-            f"{dense['fwd_bwd_s']:.2f}{star}",
-            f"{dense['fwd_s']:.2f}{star}",
-            f"{dense['peak_mb']:.0f}{star}",
+            f"{dense['fwd_bwd_s']:.2f}{star}" if dense else "-",
+            f"{dense['fwd_s']:.2f}{star}" if dense else "-",
+            f"{dense['peak_mb']:.0f}{star}" if dense else "-",
             f"{ref['fwd_bwd_s'] / fast['fwd_bwd_s']:.1f}x",
-            f"{dense['fwd_bwd_s'] / fast['fwd_bwd_s']:.0f}x",
+            f"{dense['fwd_bwd_s'] / fast['fwd_bwd_s']:.0f}x" if dense else "-",
         )
     return table
 
@@ -453,7 +458,12 @@ def report(cfg: BenchConfig) -> None:
 
 def main() -> None:
     """Console script ``naka-gs-bench-raster``: the CPU rasterizer benchmark."""
-    report(tyro.cli(BenchConfig))
+    cfg = tyro.cli(BenchConfig)
+    if cfg.dense_budget < 0:
+        raise SystemExit(
+            f"naka-gs-bench-raster: --dense-budget must be >= 0 (0 skips the dense reference), got {cfg.dense_budget}"
+        )
+    report(cfg)
 
 
 if __name__ == "__main__":

@@ -1,9 +1,10 @@
 """Compiled CPU tile rasterizer ("cpu-fast"): numba kernels with a hand-written backward.
 
 Same interface, conventions and results as :mod:`naka_gs_plugin.model.rasterize` (gsplat 1.4.0
-``rasterization``, unpacked, pinhole): projection and SH colours stay in torch autograd (they are a
-share of the time, see the stage profile of ``naka-gs-bench-raster``); only the compositing step, where
-eager torch has to materialise every Gaussian-pixel pair, is compiled.
+``rasterization``, unpacked, pinhole). Every stage is compiled: projection and SH colours
+(:mod:`~naka_gs_plugin.model.project_cpu_fast`, float64 inside, so float32 results are the float64
+reference's rounded, within rounding of the torch path's float32 arithmetic), the depth sort (a
+stable radix sort), the tile binning, compositing and its backward, and the per-Gaussian reduction.
 
 Layout (as gsplat's CUDA path): the image is cut into 16x16 tiles; every visible Gaussian
 (``radius > 0``, ``opacity >= 1/255``) is listed, in stable depth order, in each tile its pixel box
@@ -14,10 +15,12 @@ torch path are composited. Forward (``prange`` over tiles): front to back with
 skipped, a pixel stops *before* the pair that would bring its transmittance to ``<= 1e-4``;
 transmittance is carried in float64 and the final transmittance and the number of list entries up
 to the last contributing one are stored per pixel. Backward (``prange`` over tiles): each pixel's
-list is walked back to front from that last entry, recovering the transmittance by division, with
+list is walked back to front from that last entry, recovering the transmittance by division (and
+reusing the ``exp(-sigma)`` and row spans the forward stored, up to ``VIS_STORE_MAX``), with
 the gradients for 2D means (and their per-pixel absolute values, gsplat's ``absgrad``), conics,
-opacities and colours summed per (tile, list entry) slot; a serial pass then adds the slots up per
-Gaussian, so there are no races and the result does not depend on the thread count.
+opacities and colours summed per (tile, list entry) slot; a pass parallel over Gaussians then adds
+each one's slots up in tile order, so there are no races and the result does not depend on the
+thread count.
 
 On each row of its box a Gaussian visits only the columns of its lenient ``alpha >= 1/255`` ellipse
 (the torch path's enumeration). ``sigma`` and ``alpha`` are computed in the inputs' dtype,
@@ -33,10 +36,10 @@ number of threads.
 
 from __future__ import annotations
 
+import threading
 import time
 from contextlib import contextmanager
-from functools import partial
-from typing import Dict, Iterator, Literal, Optional, Tuple
+from typing import Dict, Iterator, Literal, Optional, Set, Tuple
 
 import numba
 import numpy as np
@@ -46,49 +49,150 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from numba import njit, prange
 from torch import Tensor
 
-from naka_gs_plugin.model.projection import pixel_bounds
-from naka_gs_plugin.model.rasterize import (
-    _ENUM_SLACK,
-    ALPHA_MAX,
-    ALPHA_MIN,
-    TILE_SIZE,
-    TRANSMITTANCE_MIN,
-    RenderMode,
-    rasterization_with_compositor,
+from naka_gs_plugin.model.project_cpu_fast import (
+    _project_backward,
+    _project_forward,
+    _sh_backward,
+    _sh_forward,
+    project_gaussians,
+    sh_colors,
 )
+from naka_gs_plugin.model.rasterize import _ENUM_SLACK, ALPHA_MAX, ALPHA_MIN, TILE_SIZE, TRANSMITTANCE_MIN, RenderMode
+
+VIS_STORE_MAX = 1 << 27
+"""Most ``exp(-sigma)`` values (one per box pixel of each list entry; ~3x the composited pairs for
+trained-scene-like Gaussians) the forward keeps for the backward (512 MB in float32); beyond, the
+backward recomputes them (slower, same results)."""
 
 N_GRAD = 8
 """Per-Gaussian gradient columns before the colours: d means2d (2), |d means2d| (2), d conics (3),
 d opacity (1)."""
 
-REC_COLORS = 10
+REC_COLORS = 12
 """Record layout per visible entry, in the inputs' dtype: mean x, y (0, 1), conic a, b, c (2..4),
-opacity (5), pixel box x_lo, x_hi, y_lo, y_hi (6..9, exact small integers), colours (10..)."""
+opacity (5), pixel box x_lo, x_hi, y_lo, y_hi (6..9, exact small integers), the lenient ellipse's
+level and conic determinant (10, 11; :func:`_ellipse_level`), colours (12..)."""
 
 
 @njit(cache=True)
-def _bin_tiles(
-    boxes: np.ndarray, cams: np.ndarray, n_cams: int, tiles_x: int, tiles_y: int
-) -> Tuple[np.ndarray, np.ndarray]:
-    """CSR lists, per tile, of the record indices whose box overlaps it, in record (depth) order."""
+def _stable_argsort(keys):
+    """Stable argsort of finite floats: LSD radix sort (8-bit digits) on their float64 bits mapped to
+    order-preserving unsigned integers; digits that all keys share are skipped (the low 29 bits of
+    float32 keys are zero). Gives ``torch.argsort(stable=True)``'s order; several times faster than
+    numba's merge sort."""
+    n = keys.shape[0]
+    bits = (keys.astype(np.float64) + 0.0).view(np.uint64)  # + 0.0: -0.0 becomes 0.0, its equal
+    sign = np.uint64(1) << np.uint64(63)
+    for i in range(n):
+        bits[i] = ~bits[i] if bits[i] & sign else bits[i] | sign
+    order = np.arange(n)
+    scratch = np.empty(n, dtype=np.int64)
+    counts = np.empty(257, dtype=np.int64)
+    for shift in range(0, 64, 8):
+        counts[:] = 0
+        sh = np.uint64(shift)
+        for i in range(n):
+            counts[np.int64((bits[i] >> sh) & np.uint64(255)) + 1] += 1
+        if counts.max() == n:
+            continue
+        for d in range(256):
+            counts[d + 1] += counts[d]
+        for i in range(n):
+            o = order[i]
+            d = np.int64((bits[o] >> sh) & np.uint64(255))
+            scratch[counts[d]] = o
+            counts[d] += 1
+        order, scratch = scratch, order
+    return order
+
+
+@njit(cache=True)
+def _visible_by_depth(radii, opacities, depths, alpha_min):
+    """Flat (camera, Gaussian) indices with ``radius > 0`` and ``opacity >= 1/255``, stable-sorted
+    by depth (the torch path's order; ``alpha_min`` is 1/255 in the inputs' dtype, as torch compares)."""
+    flat_radii, flat_opac, flat_depths = radii.ravel(), opacities.ravel(), depths.ravel()
+    entries = np.nonzero((flat_radii > 0) & (flat_opac >= alpha_min))[0]
+    return entries[_stable_argsort(flat_depths[entries])]
+
+
+@njit(parallel=True, cache=True)
+def _make_records(entries, means2d, conics, opacities, colors, radii_f, consts, width, height):
+    """Records (see ``REC_COLORS``) of the sorted entries and their pixel boxes
+    (:func:`~naka_gs_plugin.model.projection.pixel_bounds`, evaluated in the inputs' dtype as there:
+    ``consts`` = (0.5, ALPHA_MAX, ALPHA_MIN, 0) in that dtype). Inputs are flat [C*N, ...]."""
+    n_dim = colors.shape[1]
+    records = np.empty((entries.shape[0], REC_COLORS + n_dim), dtype=means2d.dtype)
+    boxes = np.empty((entries.shape[0], 4), dtype=np.int64)
+    for j in prange(entries.shape[0]):
+        e = entries[j]
+        mx, my, r = means2d[e, 0], means2d[e, 1], radii_f[e]
+        boxes[j, 0] = np.int64(max(np.ceil(mx - r - consts[0]), consts[3]))
+        boxes[j, 1] = np.int64(min(np.floor(mx + r - consts[0]), width - 1))
+        boxes[j, 2] = np.int64(max(np.ceil(my - r - consts[0]), consts[3]))
+        boxes[j, 3] = np.int64(min(np.floor(my + r - consts[0]), height - 1))
+        records[j, 0], records[j, 1] = mx, my
+        records[j, 2], records[j, 3], records[j, 4] = conics[e, 0], conics[e, 1], conics[e, 2]
+        records[j, 5] = opacities[e]
+        for q in range(4):
+            records[j, 6 + q] = boxes[j, q]
+        records[j, 10], records[j, 11] = _ellipse_level(conics[e, 0], conics[e, 1], conics[e, 2], opacities[e])
+        for d in range(n_dim):
+            records[j, REC_COLORS + d] = colors[e, d]
+    return records, boxes
+
+
+@njit(cache=True)
+def _bin_tiles(boxes, entries, n_gauss, n_cams, tiles_x, tiles_y):
+    """CSR lists, per tile, of the record indices whose box overlaps it, in record (depth) order;
+    per record the list (slot) positions it got, in increasing tile order; and per slot the start
+    of its box-in-tile pixels in the forward's ``exp(-sigma)`` store (``vis_start``) and of its
+    box-in-tile rows in the forward's row-span store (``span_start``)."""
     tiles_per_cam = tiles_x * tiles_y
     counts = np.zeros(n_cams * tiles_per_cam + 1, dtype=np.int64)
+    rec_start = np.zeros(boxes.shape[0] + 1, dtype=np.int64)
     for j in range(boxes.shape[0]):
-        base = cams[j] * tiles_per_cam
-        for ty in range(boxes[j, 2] // TILE_SIZE, boxes[j, 3] // TILE_SIZE + 1):
-            for tx in range(boxes[j, 0] // TILE_SIZE, boxes[j, 1] // TILE_SIZE + 1):
+        base = (entries[j] // n_gauss) * tiles_per_cam
+        ty0, ty1 = boxes[j, 2] // TILE_SIZE, boxes[j, 3] // TILE_SIZE
+        tx0, tx1 = boxes[j, 0] // TILE_SIZE, boxes[j, 1] // TILE_SIZE
+        for ty in range(ty0, ty1 + 1):
+            for tx in range(tx0, tx1 + 1):
                 counts[base + ty * tiles_x + tx + 1] += 1
+        rec_start[j + 1] = rec_start[j] + (ty1 - ty0 + 1) * (tx1 - tx0 + 1)
     tile_start = np.cumsum(counts)
     fill = tile_start[:-1].copy()
     tile_items = np.empty(tile_start[-1], dtype=np.int32)
+    rec_slots = np.empty(tile_start[-1], dtype=np.int64)
+    vis_start = np.zeros(tile_start[-1] + 1, dtype=np.int64)
+    span_start = np.zeros(tile_start[-1] + 1, dtype=np.int64)
     for j in range(boxes.shape[0]):
-        base = cams[j] * tiles_per_cam
+        base = (entries[j] // n_gauss) * tiles_per_cam
+        q = rec_start[j]
         for ty in range(boxes[j, 2] // TILE_SIZE, boxes[j, 3] // TILE_SIZE + 1):
             for tx in range(boxes[j, 0] // TILE_SIZE, boxes[j, 1] // TILE_SIZE + 1):
                 tile = base + ty * tiles_x + tx
                 tile_items[fill[tile]] = j
+                rec_slots[q] = fill[tile]
+                cols = min(boxes[j, 1], tx * TILE_SIZE + TILE_SIZE - 1) - max(boxes[j, 0], tx * TILE_SIZE) + 1
+                rows = min(boxes[j, 3], ty * TILE_SIZE + TILE_SIZE - 1) - max(boxes[j, 2], ty * TILE_SIZE) + 1
+                vis_start[fill[tile] + 1] = cols * rows
+                span_start[fill[tile] + 1] = rows
+                q += 1
                 fill[tile] += 1
-    return tile_start, tile_items
+    for k in range(tile_items.shape[0]):
+        vis_start[k + 1] += vis_start[k]
+        span_start[k + 1] += span_start[k]
+    return tile_start, tile_items, rec_start, rec_slots, vis_start, span_start
+
+
+@njit(parallel=True, cache=True)
+def _gather_rows(records, tile_items):
+    """``records[tile_items]``: one record per list slot, so that each tile reads its list from
+    contiguous memory (scattered reads of depth-ordered records made the kernels ~25 % slower)."""
+    out = np.empty((tile_items.shape[0], records.shape[1]), dtype=records.dtype)
+    for k in prange(tile_items.shape[0]):
+        for col in range(records.shape[1]):
+            out[k, col] = records[tile_items[k], col]
+    return out
 
 
 @njit(cache=True, inline="always")
@@ -117,8 +221,9 @@ def _ellipse_level(a, b, c, opacity):
 @njit(cache=True, inline="always")
 def _row_span(dy, mx, a, b, level, det, bx0, bx1):
     """Columns ``[lo, hi]`` of box columns ``[bx0, bx1]`` on a row ``dy = mean.y - centre.y`` that
-    can be inside the lenient ellipse (as the torch path enumerates them); the exact per-pair test
-    still decides. Falls back to the box for degenerate conics."""
+    can be inside the lenient ellipse (the torch path's enumeration, up to rounding well inside its
+    slack: ``level`` and ``det`` are stored in the records' dtype); the exact per-pair test still
+    decides. Falls back to the box for degenerate conics."""
     if not (a > 0 and det > 0 and level < np.inf):
         return bx0, bx1
     dy64 = np.float64(dy)
@@ -144,11 +249,18 @@ def _tile_box(tile, tiles_x, tiles_y, width, height):
 
 
 @njit(parallel=True, cache=True)
-def _forward_kernel(tile_order, tile_start, tile_items, records, xs, ys, consts, n_cams, width, height):
-    """Composite every tile; returns colours without background, T_final (f64) and last entries."""
+def _forward_kernel(
+    tile_order, tile_start, vis_start, span_start, records, xs, ys, consts, n_cams, width, height, vis_store, spans
+):
+    """Composite every tile; returns colours without background, T_final (f64) and last entries.
+    Stores, for the backward to reuse instead of recomputing, the ``exp(-sigma)`` of every pair it
+    evaluated (0 for skipped pairs) in ``vis_store`` (unless it is shorter than ``vis_start[-1]``:
+    then the backward recomputes them) and every row span, relative to the tile's first column, in
+    ``spans`` (see :func:`_bin_tiles`)."""
     tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
     tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
     n_dim = records.shape[1] - REC_COLORS
+    store_vis = vis_store.shape[0] >= vis_start[-1]
     out = np.zeros((n_cams * height * width, n_dim), dtype=records.dtype)
     t_final = np.ones(n_cams * height * width, dtype=np.float64)
     last = np.zeros(n_cams * height * width, dtype=np.int32)
@@ -164,19 +276,25 @@ def _forward_kernel(tile_order, tile_start, tile_items, records, xs, ys, consts,
         last_local = np.zeros(n_pix, dtype=np.int32)
         alive = n_pix
         for k in range(s, e):
-            rec = records[tile_items[k]]
+            rec = records[k]
             mx, my, a, b, c, opacity = rec[0], rec[1], rec[2], rec[3], rec[4], rec[5]
             bx0, bx1 = max(np.int64(rec[6]), x0), min(np.int64(rec[7]), x1 - 1)
             by0, by1 = max(np.int64(rec[8]), y0), min(np.int64(rec[9]), y1 - 1)
-            level, det = _ellipse_level(a, b, c, opacity)
+            level, det = np.float64(rec[10]), np.float64(rec[11])
+            store = vis_start[k] - by0 * (bx1 - bx0 + 1) - bx0
             for py in range(by0, by1 + 1):
                 dy = my - ys[py]
                 lo, hi = _row_span(dy, mx, a, b, level, det, bx0, bx1)
+                q = 2 * (span_start[k] + py - by0)
+                spans[q], spans[q + 1] = max(min(lo, x1) - x0, 0), max(hi, x0 - 1) - x0
+                row_store = store + py * (bx1 - bx0 + 1)
                 for px in range(lo, hi + 1):
                     i = (py - y0) * tw + (px - x0)
                     if done[i]:
                         continue
-                    alpha = _alpha(mx - xs[px], dy, a, b, c, opacity, consts)[2]
+                    vis, _, alpha = _alpha(mx - xs[px], dy, a, b, c, opacity, consts)
+                    if store_vis:
+                        vis_store[row_store + px] = vis if alpha != 0 else consts[3]
                     if alpha == 0:
                         continue
                     t_next = trans[i] * (1.0 - np.float64(alpha))
@@ -204,7 +322,8 @@ def _forward_kernel(tile_order, tile_start, tile_items, records, xs, ys, consts,
 def _backward_kernel(
     tile_order,
     tile_start,
-    tile_items,
+    vis_start,
+    span_start,
     records,
     xs,
     ys,
@@ -214,10 +333,14 @@ def _backward_kernel(
     height,
     t_final,
     last,
+    vis_store,
+    spans,
     grad_colors,
     grad_q,
+    slots,
 ):
-    """Per (tile, list entry) gradient slots [K, N_GRAD + D], walking each pixel back to front.
+    """Fill the per (tile, list entry) gradient ``slots`` [K, N_GRAD + D], walking each pixel back
+    to front.
 
     ``grad_colors`` [P, D] is dL/d(colour without background) and ``grad_q`` [P] is
     ``T_final * (dL/dcolour . background - dL/dalpha)``: the upstream term every pair's
@@ -226,7 +349,7 @@ def _backward_kernel(
     tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
     tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
     n_dim = records.shape[1] - REC_COLORS
-    slots = np.zeros((tile_items.shape[0], N_GRAD + n_dim), dtype=np.float64)
+    store_vis = vis_store.shape[0] >= vis_start[-1]
     for job in prange(tile_order.shape[0]):
         tile = tile_order[job]
         s = tile_start[tile]
@@ -248,26 +371,38 @@ def _backward_kernel(
             for d in range(n_dim):
                 gcol[i, d] = grad_colors[p, d]
         gcolor = np.empty(n_dim, dtype=np.float64)
+        slots[s + k_end : tile_start[tile + 1]] = 0.0  # entries behind every pixel's last one
         for kk in range(k_end - 1, -1, -1):
-            rec = records[tile_items[s + kk]]
+            rec = records[s + kk]
             mx, my, a, b, c, opacity = rec[0], rec[1], rec[2], rec[3], rec[4], rec[5]
             bx0, bx1 = max(np.int64(rec[6]), x0), min(np.int64(rec[7]), x1 - 1)
             by0, by1 = max(np.int64(rec[8]), y0), min(np.int64(rec[9]), y1 - 1)
-            level, det = _ellipse_level(a, b, c, opacity)
+            store = vis_start[s + kk] - by0 * (bx1 - bx0 + 1) - bx0
             # Scalars (kept in registers) for the geometry, the colour part in a small array.
             g_mx = g_my = g_absx = g_absy = g_ca = g_cb = g_cc = g_op = 0.0
             gcolor[:] = 0.0
             for py in range(by0, by1 + 1):
                 dy = my - ys[py]
-                lo, hi = _row_span(dy, mx, a, b, level, det, bx0, bx1)
+                q = 2 * (span_start[s + kk] + py - by0)
+                lo, hi = x0 + np.int64(spans[q]), x0 + np.int64(spans[q + 1])
+                row_store = store + py * (bx1 - bx0 + 1)
                 for px in range(lo, hi + 1):
                     i = (py - y0) * tw + (px - x0)
                     if kk >= last_local[i]:
                         continue
+                    if store_vis:
+                        # The forward evaluated this pair (the pixel was still compositing): its
+                        # exp(-sigma), hence bitwise its alpha, or 0 where it skipped the pair.
+                        vis = vis_store[row_store + px]
+                        if vis == 0:
+                            continue
+                        raw = opacity * vis
+                        alpha = min(raw, consts[1])
+                    else:
+                        vis, raw, alpha = _alpha(mx - xs[px], dy, a, b, c, opacity, consts)
+                        if alpha == 0:
+                            continue
                     dx = mx - xs[px]
-                    vis, raw, alpha = _alpha(dx, dy, a, b, c, opacity, consts)
-                    if alpha == 0:
-                        continue
                     alpha64 = np.float64(alpha)
                     inv_one_minus = 1.0 / (1.0 - alpha64)
                     t_before = trans[i] * inv_one_minus
@@ -297,18 +432,65 @@ def _backward_kernel(
             slots[k, 4], slots[k, 5], slots[k, 6], slots[k, 7] = g_ca, g_cb, g_cc, g_op
             for d in range(n_dim):
                 slots[k, N_GRAD + d] = gcolor[d]
-    return slots
 
 
-@njit(cache=True)
-def _reduce_slots(slots, tile_items, n_records):
-    """Sum the (tile, entry) slots per record, in slot order (deterministic)."""
-    grads = np.zeros((n_records, slots.shape[1]), dtype=np.float64)
-    for k in range(slots.shape[0]):
-        j = tile_items[k]
-        for col in range(slots.shape[1]):
-            grads[j, col] += slots[k, col]
-    return grads
+@njit(parallel=True, cache=True)
+def _reduce_slots(slots, rec_start, rec_slots, entries, g_means2d, g_abs, g_conics, g_opac, g_colors):
+    """Sum each record's (tile, entry) slots in increasing tile order (deterministic) into the
+    zero-initialised per-entry gradients (flat [C*N, ...], the inputs' dtype; ``g_opac`` [C*N, 1])."""
+    n_rec, n_cols = entries.shape[0], slots.shape[1]
+    chunk = 256
+    for first in prange((n_rec + chunk - 1) // chunk):
+        acc = np.empty(n_cols)
+        for j in range(first * chunk, min((first + 1) * chunk, n_rec)):
+            acc[:] = 0.0
+            for q in range(rec_start[j], rec_start[j + 1]):
+                k = rec_slots[q]
+                for col in range(n_cols):
+                    acc[col] += slots[k, col]
+            e = entries[j]
+            g_means2d[e, 0], g_means2d[e, 1], g_abs[e, 0], g_abs[e, 1] = acc[0], acc[1], acc[2], acc[3]
+            g_conics[e, 0], g_conics[e, 1], g_conics[e, 2], g_opac[e, 0] = acc[4], acc[5], acc[6], acc[7]
+            for d in range(n_cols - N_GRAD):
+                g_colors[e, d] = acc[N_GRAD + d]
+
+
+def _np(x: Tensor) -> np.ndarray:
+    return x.detach().contiguous().numpy()
+
+
+_SCRATCH: Dict[Tuple[str, type], np.ndarray] = {}
+_SCRATCH_LOCK = threading.Lock()
+
+
+def _take_scratch(name: str, size: int, dtype: type) -> np.ndarray:
+    """A scratch array of at least ``size`` elements, reused across renders: first writes to fresh
+    memory (page faults) cost more than the kernels' own work on it. The caller owns it until it
+    hands it back with :func:`_give_scratch` (concurrent renders get their own arrays)."""
+    with _SCRATCH_LOCK:
+        buf = _SCRATCH.pop((name, dtype), None)
+    if buf is None or buf.size < size:
+        buf = np.empty(max(size, 1), dtype=dtype)
+    return buf
+
+
+def _give_scratch(name: str, buf: np.ndarray) -> None:
+    """Keep ``buf`` for the next render (only the largest one per name and dtype is kept)."""
+    with _SCRATCH_LOCK:
+        kept = _SCRATCH.get((name, buf.dtype.type))
+        if kept is None or kept.size < buf.size:
+            _SCRATCH[(name, buf.dtype.type)] = buf
+
+
+class _ScratchLease:
+    """Hands a scratch array back when the autograd node holding it is freed (not after its
+    backward: ``retain_graph`` may run that again)."""
+
+    def __init__(self, name: str, buf: np.ndarray):
+        self.name, self.buf = name, buf
+
+    def __del__(self):
+        _give_scratch(self.name, self.buf)
 
 
 def _balanced_tile_order(tile_start: np.ndarray) -> np.ndarray:
@@ -323,6 +505,7 @@ def _balanced_tile_order(tile_start: np.ndarray) -> np.ndarray:
 
 
 _READY: Dict[torch.dtype, float] = {}
+_WARMING: Set[torch.dtype] = set()
 
 STAGE_SECONDS: Optional[Dict[str, float]] = None
 """When a dict (see :func:`profile_stages`), wall seconds per stage are added to it."""
@@ -351,23 +534,40 @@ def _stage(name: str) -> Iterator[None]:
 
 
 def warm_up(dtype: torch.dtype = torch.float32) -> float:
-    """Compile (or load from numba's disk cache) every kernel for ``dtype``; returns the seconds
-    taken and logs them once per dtype and process. Called by the first render of a dtype."""
-    if dtype in _READY:
+    """Compile (or load from numba's disk cache) every kernel for ``dtype`` by rendering a tiny
+    scene forward and backward; returns the seconds taken and logs them once per dtype and
+    process. Called by the first render of a dtype."""
+    if dtype in _READY or dtype in _WARMING:
         return 0.0
+    _WARMING.add(dtype)
     started = time.perf_counter()
-    np_dtype = np.float32 if dtype == torch.float32 else np.float64
-    boxes = np.array([[0, 1, 0, 1]], dtype=np.int64)
-    tile_start, tile_items = _bin_tiles(boxes, np.zeros(1, dtype=np.int64), 1, 1, 1)
-    centres = np.array([0.5, 1.5], dtype=np_dtype)
-    records = np.array([[1.0, 1.0, 1.0, 0.0, 1.0, 0.5, 0.0, 1.0, 0.0, 1.0, 1.0, 1.0, 1.0]], dtype=np_dtype)
-    consts = np.array([0.5, ALPHA_MAX, ALPHA_MIN, 0.0], dtype=np_dtype)
-    args = (_balanced_tile_order(tile_start), tile_start, tile_items, records, centres, centres, consts, 1, 2, 2)
-    _, t_final, last = _forward_kernel(*args)
-    slots = _backward_kernel(*args, t_final, last, np.ones((4, 3)), np.ones(4))
-    _reduce_slots(slots, tile_items, 1)
+    try:
+        params = dict(
+            means=torch.tensor([[0.0, 0.0, 2.0], [0.1, 0.0, 3.0]], dtype=dtype),
+            quats=torch.tensor([[1.0, 0.1, 0.2, 0.3], [1.0, 0.0, 0.0, 0.0]], dtype=dtype),
+            scales=torch.full((2, 3), 0.3, dtype=dtype),
+            opacities=torch.tensor([0.5, 0.9], dtype=dtype),
+            colors=torch.ones(2, 16, 3, dtype=dtype),
+        )
+        params = {k: v.requires_grad_() for k, v in params.items()}
+        camera = dict(
+            viewmats=torch.eye(4, dtype=dtype)[None],
+            Ks=torch.tensor([[[8.0, 0, 4], [0, 8, 4], [0, 0, 1]]], dtype=dtype),
+            width=8,
+            height=8,
+        )
+        with torch.enable_grad():
+            colors, alphas, _ = rasterization(
+                **params, **camera, sh_degree=3, rasterize_mode="antialiased", render_mode="RGB+ED", absgrad=True
+            )
+            (colors.sum() + alphas.sum()).backward()
+    finally:
+        _WARMING.discard(dtype)
     seconds = time.perf_counter() - started
-    kernels = (_bin_tiles, _forward_kernel, _backward_kernel, _reduce_slots)
+    kernels = (
+        _visible_by_depth, _make_records, _bin_tiles, _gather_rows, _forward_kernel, _backward_kernel, _reduce_slots,
+        _project_forward, _project_backward, _sh_forward, _sh_backward,
+    )  # fmt: skip
     misses = sum(sum(k.stats.cache_misses.values()) for k in kernels)
     how = "compiled (and cached on disk)" if misses else "loaded from numba's disk cache"
     CONSOLE.log(
@@ -395,58 +595,63 @@ class _TileComposite(torch.autograd.Function):
         height: int,
         absgrad: bool,
     ) -> Tuple[Tensor, Tensor]:
-        warm_up(colors.dtype)
         n_cams, n, dim = colors.shape
         dtype = colors.dtype
+        np_dtype = np.float32 if dtype == torch.float32 else np.float64
         with _stage("sort+bin"):
-            flat_opac = opacities.detach().reshape(-1)
-            entries = torch.nonzero((radii.reshape(-1) > 0) & (flat_opac >= ALPHA_MIN)).squeeze(1)
-            entries = entries.index_select(0, torch.argsort(depths.detach().reshape(-1)[entries], stable=True))
-            boxes = pixel_bounds(means2d.detach(), radii, width, height).reshape(-1, 4).index_select(0, entries)
-            # One record per visible entry, in depth order: every tile reads its list front to back
-            # through memory in increasing address order.
-            records = torch.cat(
-                [
-                    means2d.detach().reshape(-1, 2).index_select(0, entries),
-                    conics.detach().reshape(-1, 3).index_select(0, entries),
-                    flat_opac.index_select(0, entries)[:, None],
-                    boxes.to(dtype),
-                    colors.detach().reshape(-1, dim).index_select(0, entries),
-                ],
-                dim=1,
-            ).numpy()
+            consts = np.array([0.5, ALPHA_MAX, ALPHA_MIN, 0.0], dtype=np_dtype)
+            entries = _visible_by_depth(_np(radii), _np(opacities), _np(depths), consts[2])
+            # One record per visible entry, in depth order; the kernels get a copy per list slot.
+            records, boxes = _make_records(
+                entries,
+                _np(means2d).reshape(-1, 2),
+                _np(conics).reshape(-1, 3),
+                _np(opacities).reshape(-1),
+                _np(colors).reshape(-1, dim),
+                radii.reshape(-1).to(dtype).numpy(),
+                consts,
+                width,
+                height,
+            )
             tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
             tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
-            cams = torch.div(entries, n, rounding_mode="floor")
-            tile_start, tile_items = _bin_tiles(boxes.numpy(), cams.numpy(), n_cams, tiles_x, tiles_y)
+            tile_start, tile_items, rec_start, rec_slots, vis_start, span_start = _bin_tiles(
+                boxes, entries, n, n_cams, tiles_x, tiles_y
+            )
             kernel_args = (
                 _balanced_tile_order(tile_start),
                 tile_start,
-                tile_items,
-                records,
+                vis_start,
+                span_start,
+                _gather_rows(records, tile_items),
                 (torch.arange(width, dtype=dtype) + 0.5).numpy(),  # pixel centres, as the torch path
                 (torch.arange(height, dtype=dtype) + 0.5).numpy(),
-                np.array([0.5, ALPHA_MAX, ALPHA_MIN, 0.0], dtype=records.dtype),
+                consts,
                 n_cams,
                 width,
                 height,
             )
         with _stage("forward kernel"):
-            out, t_final, last = _forward_kernel(*kernel_args)
+            n_vis = int(vis_start[-1])
+            vis_store = _take_scratch("vis", n_vis, np_dtype) if n_vis <= VIS_STORE_MAX else np.zeros(0, np_dtype)
+            spans = _take_scratch("spans", 2 * int(span_start[-1]), np.int8)
+            out, t_final, last = _forward_kernel(*kernel_args, vis_store, spans)
         out = torch.from_numpy(out)
         t_final_t = torch.from_numpy(t_final).to(dtype)
         if backgrounds is not None:
             out = out + (t_final_t.reshape(n_cams, -1, 1) * backgrounds[:, None, :].detach()).reshape(-1, dim)
-        ctx.save_for_backward(means2d, backgrounds, entries)
-        ctx.kernel_args = kernel_args + (t_final, last)
+        ctx.save_for_backward(means2d, backgrounds)
+        ctx.kernel_args = kernel_args + (t_final, last, vis_store, spans)
+        ctx.leases = [_ScratchLease("spans", spans)] + ([_ScratchLease("vis", vis_store)] if vis_store.size else [])
+        ctx.slot_lists = (rec_start, rec_slots, entries)
         ctx.meta = (n_cams, n, dim, absgrad)
         return out.reshape(n_cams, height, width, dim), (1.0 - t_final_t).reshape(n_cams, height, width, 1)
 
     @staticmethod
     def backward(ctx, grad_colors: Tensor, grad_alphas: Tensor):
-        means2d, backgrounds, entries = ctx.saved_tensors
+        means2d, backgrounds = ctx.saved_tensors
         n_cams, n, dim, absgrad = ctx.meta
-        t_final = ctx.kernel_args[-2]
+        t_final = ctx.kernel_args[-4]
         dtype = grad_colors.dtype
         grad_colors = grad_colors.reshape(n_cams, -1, dim)
         upstream = -grad_alphas.reshape(n_cams, -1).double()
@@ -454,32 +659,31 @@ class _TileComposite(torch.autograd.Function):
             upstream = upstream + (grad_colors * backgrounds[:, None, :]).sum(-1).double()
         grad_q = torch.from_numpy(t_final) * upstream.reshape(-1)
         with _stage("backward kernel"):
-            slots = _backward_kernel(
+            n_slots = ctx.kernel_args[4].shape[0]
+            slot_buf = _take_scratch("slots", n_slots * (N_GRAD + dim), np.float64)
+            slots = slot_buf[: n_slots * (N_GRAD + dim)].reshape(n_slots, N_GRAD + dim)
+            _backward_kernel(
                 *ctx.kernel_args,
                 grad_colors.reshape(-1, dim).double().contiguous().numpy(),
                 grad_q.contiguous().numpy(),
+                slots,
             )
         with _stage("reduce+scatter"):
-            per_record = torch.from_numpy(_reduce_slots(slots, ctx.kernel_args[2], len(entries))).to(dtype)
-            grads = per_record.new_zeros(n_cams * n, N_GRAD + dim).index_copy_(0, entries, per_record)
+            g_means2d = torch.zeros(n_cams, n, 2, dtype=dtype)
+            g_abs = torch.zeros(n_cams, n, 2, dtype=dtype)
+            g_conics = torch.zeros(n_cams, n, 3, dtype=dtype)
+            g_opac = torch.zeros(n_cams, n, dtype=dtype)
+            g_colors = torch.zeros(n_cams, n, dim, dtype=dtype)
+            outs = (g_means2d, g_abs, g_conics, g_opac, g_colors)
+            _reduce_slots(slots, *ctx.slot_lists, *(g.view(n_cams * n, -1).numpy() for g in outs))
+            _give_scratch("slots", slot_buf)
         if absgrad:
-            means2d.absgrad = grads[:, 2:4].reshape(n_cams, n, 2)
+            means2d.absgrad = g_abs
         grad_bg = None
         if backgrounds is not None and ctx.needs_input_grad[4]:
             t = torch.from_numpy(t_final).to(dtype).reshape(n_cams, -1, 1)
             grad_bg = (grad_colors * t).sum(1)
-        return (
-            grads[:, 0:2].reshape(n_cams, n, 2),
-            grads[:, 4:7].reshape(n_cams, n, 3),
-            grads[:, 7].reshape(n_cams, n),
-            grads[:, N_GRAD:].reshape(n_cams, n, dim),
-            grad_bg,
-            None,
-            None,
-            None,
-            None,
-            None,
-        )
+        return g_means2d, g_conics, g_opac, g_colors, grad_bg, None, None, None, None, None
 
 
 def rasterize_to_pixels_cpu_fast(
@@ -504,6 +708,7 @@ def rasterize_to_pixels_cpu_fast(
         raise ValueError(f"the cpu-fast rasterizer needs CPU tensors, got {means2d.device} -- use gsplat on CUDA")
     if colors.dtype not in (torch.float32, torch.float64):
         raise ValueError(f"the cpu-fast rasterizer supports float32/float64, got {colors.dtype}")
+    warm_up(colors.dtype)
     return _TileComposite.apply(means2d, conics, opacities, colors, backgrounds, depths, radii, width, height, absgrad)
 
 
@@ -527,23 +732,81 @@ def rasterization(
     eps2d: float = 0.3,
 ) -> Tuple[Float[Tensor, "C H W X"], Float[Tensor, "C H W 1"], Dict]:
     """:func:`naka_gs_plugin.model.rasterize.rasterization` (gsplat 1.4.0 interface, same outputs
-    and ``meta``) with the compiled compositing step; CPU tensors only."""
-    return rasterization_with_compositor(
-        partial(rasterize_to_pixels_cpu_fast, absgrad=absgrad),
+    and ``meta``) with compiled projection, SH colours and compositing; CPU tensors only.
+
+    The flow is ``rasterization_with_compositor``'s, with the compiled
+    :mod:`~naka_gs_plugin.model.project_cpu_fast` in place of the torch projection and SH.
+    """
+    n = means.shape[0]
+    n_cams = viewmats.shape[0]
+    if render_mode not in ("RGB", "D", "ED", "RGB+D", "RGB+ED"):
+        raise ValueError(f"unknown render_mode {render_mode!r}")
+    if rasterize_mode not in ("classic", "antialiased"):
+        raise ValueError(f"unknown rasterize_mode {rasterize_mode!r}")
+    if means.shape != (n, 3) or quats.shape != (n, 4) or scales.shape != (n, 3):
+        raise ValueError(f"bad shapes: means {means.shape}, quats {quats.shape}, scales {scales.shape}")
+    if opacities.shape != (n,) or viewmats.shape != (n_cams, 4, 4) or Ks.shape != (n_cams, 3, 3):
+        raise ValueError(f"bad shapes: opacities {opacities.shape}, viewmats {viewmats.shape}, Ks {Ks.shape}")
+    if means.device.type != "cpu":
+        raise ValueError(f"the cpu-fast rasterizer needs CPU tensors, got {means.device} -- use gsplat on CUDA")
+    if means.dtype not in (torch.float32, torch.float64):
+        raise ValueError(f"the cpu-fast rasterizer supports float32/float64, got {means.dtype}")
+    warm_up(means.dtype)
+
+    proj = project_gaussians(
         means,
         quats,
         scales,
-        opacities,
-        colors,
         viewmats,
         Ks,
         width,
         height,
+        eps2d=eps2d,
         near_plane=near_plane,
         far_plane=far_plane,
-        sh_degree=sh_degree,
-        backgrounds=backgrounds,
-        render_mode=render_mode,
-        rasterize_mode=rasterize_mode,
-        eps2d=eps2d,
+        calc_compensations=rasterize_mode == "antialiased",
     )
+    opacities = opacities[None, :].expand(n_cams, n)
+    if proj.compensations is not None:
+        opacities = opacities * proj.compensations
+
+    if sh_degree is None:
+        if not (colors.dim() == 2 and colors.shape[0] == n) and colors.shape[:2] != (n_cams, n):
+            raise ValueError(f"colors must be [N, D] or [C, N, D], got {tuple(colors.shape)}")
+        feats = colors.expand(n_cams, n, colors.shape[-1]) if colors.dim() == 2 else colors
+    else:
+        if not (colors.dim() == 3 and colors.shape[0] == n) and colors.shape[:2] != (n_cams, n):
+            raise ValueError(f"SH colors must be [N, K, 3] or [C, N, K, 3], got {tuple(colors.shape)}")
+        feats = sh_colors(means, colors, viewmats, sh_degree)
+
+    if render_mode in ("RGB+D", "RGB+ED"):
+        feats = torch.cat([feats, proj.depths[..., None]], dim=-1)
+        if backgrounds is not None:
+            backgrounds = torch.cat([backgrounds, backgrounds.new_zeros(n_cams, 1)], dim=-1)
+    elif render_mode in ("D", "ED"):
+        feats = proj.depths[..., None]
+        if backgrounds is not None:
+            backgrounds = backgrounds.new_zeros(n_cams, 1)
+
+    render_colors, render_alphas = rasterize_to_pixels_cpu_fast(
+        proj.means2d, proj.conics, feats, opacities, proj.depths, proj.radii, width, height, backgrounds, absgrad
+    )
+    if render_mode in ("ED", "RGB+ED"):
+        render_colors = torch.cat(
+            [render_colors[..., :-1], render_colors[..., -1:] / render_alphas.clamp(min=1e-10)],
+            dim=-1,
+        )
+    meta = {
+        "camera_ids": None,
+        "gaussian_ids": None,
+        "radii": proj.radii,
+        "means2d": proj.means2d,
+        "depths": proj.depths,
+        "conics": proj.conics,
+        "opacities": opacities,
+        "width": width,
+        "height": height,
+        "n_cameras": n_cams,
+        "tile_size": TILE_SIZE,
+    }
+    return render_colors, render_alphas, meta
