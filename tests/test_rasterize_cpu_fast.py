@@ -333,3 +333,18 @@ def test_training_matches_torch_path(toy_scene):
     assert abs(fast_loss - ref_loss) <= 1e-3 * ref_loss
     for k, p in ref.gauss_params.items():
         assert rel_err(fast.gauss_params[k].data, p.data) <= 1e-2, k
+
+
+def test_first_render_keeps_pytorch_thread_count():
+    """numba's OpenMP pool starts on the first cpu-fast render and shares the runtime with PyTorch;
+    a fresh process that asked PyTorch for one thread must still have one afterwards."""
+    import subprocess
+    import sys
+
+    code = (
+        "import torch; torch.set_num_threads(1)\n"
+        "from naka_gs_plugin.model.rasterize_cpu_fast import warm_up\n"
+        "warm_up(torch.float32); print(torch.get_num_threads())\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip().splitlines()[-1] == "1"

@@ -541,6 +541,9 @@ def warm_up(dtype: torch.dtype = torch.float32) -> float:
         return 0.0
     _WARMING.add(dtype)
     started = time.perf_counter()
+    # The first parallel kernel starts numba's OpenMP pool, which resets the runtime it shares with
+    # PyTorch to numba's thread count: keep the caller's PyTorch setting.
+    torch_threads = torch.get_num_threads()
     try:
         params = dict(
             means=torch.tensor([[0.0, 0.0, 2.0], [0.1, 0.0, 3.0]], dtype=dtype),
@@ -563,6 +566,8 @@ def warm_up(dtype: torch.dtype = torch.float32) -> float:
             (colors.sum() + alphas.sum()).backward()
     finally:
         _WARMING.discard(dtype)
+        if torch.get_num_threads() != torch_threads:
+            torch.set_num_threads(torch_threads)
     seconds = time.perf_counter() - started
     kernels = (
         _visible_by_depth, _make_records, _bin_tiles, _gather_rows, _forward_kernel, _backward_kernel, _reduce_slots,
