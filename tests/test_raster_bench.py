@@ -42,3 +42,11 @@ def test_negative_dense_budget_is_refused(monkeypatch):
     monkeypatch.setattr(sys, "argv", ["naka-gs-bench-raster", "--dense-budget", "-5"])
     with pytest.raises(SystemExit, match="--dense-budget must be >= 0"):
         bench.main()
+
+
+def test_dense_extrapolation_refuses_noise():
+    # 1 px: 0.10 s; a 201-px window: 0.30 s -> 1 ms per pixel, 0.10 + 0.2 * 10 at 2001 px.
+    got = bench.extrapolate((0.05, 0.10), (0.15, 0.30), 201, 2001)
+    assert got == pytest.approx((0.05 + 0.1 * 10, 0.10 + 0.2 * 10))
+    # A window timed faster than one pixel is noise: no (negative) extrapolation.
+    assert bench.extrapolate((0.05, 0.10), (0.04, 0.30), 201, 2001) is None

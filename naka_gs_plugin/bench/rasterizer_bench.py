@@ -207,7 +207,19 @@ def _time_renders(scene: Dict, width: int, height: int, method: str, repeats: in
     return statistics.median(fwd[1:]), statistics.median(total[1:])
 
 
-def _run_case(method: str, n: int, width: int, height: int, threads: int, cfg: BenchConfig) -> Dict:
+def extrapolate(
+    one: Tuple[float, float], window: Tuple[float, float], window_pixels: int, pixels: int
+) -> Optional[Tuple[float, float]]:
+    """(forward, forward+backward) seconds at ``pixels`` on the line through the 1-pixel and the
+    window timings, or None when a window is not slower than one pixel (noise, not a cost per pixel:
+    extrapolating it hundreds of times over printed negative times)."""
+    if any(w <= o for o, w in zip(one, window)):
+        return None
+    scale = (pixels - 1) / (window_pixels - 1)
+    return tuple(o + (w - o) * scale for o, w in zip(one, window))
+
+
+def _run_case(method: str, n: int, width: int, height: int, threads: int, cfg: BenchConfig) -> Optional[Dict]:
     """One benchmark case, meant to run in a fresh process (its peak memory is its own)."""
     _set_threads(threads)
     device = "cpu" if method == "cpu-fast" else cfg.device
@@ -230,8 +242,10 @@ def _run_case(method: str, n: int, width: int, height: int, threads: int, cfg: B
         win_h = max(1, min(height, pixels // win_w))
         one = _time_renders(scene, 1, 1, method, cfg.repeats, device)
         window = _time_renders(scene, win_w, win_h, method, cfg.repeats, device)
-        scale = (width * height - 1) / (win_w * win_h - 1)
-        result["fwd_s"], result["fwd_bwd_s"] = (o + (w - o) * scale for o, w in zip(one, window))
+        line = extrapolate(one, window, win_w * win_h, width * height)
+        if line is None:
+            return None  # shown as "-": the window is too small to tell its per-pixel cost from noise
+        result["fwd_s"], result["fwd_bwd_s"] = line
         result["measured_pixels"] = win_w * win_h
         result["window"] = f"{win_w}x{win_h}"
     if device.startswith("cuda"):
@@ -373,7 +387,8 @@ def render_table(rows: List[Dict], cfg: BenchConfig) -> Table:
         caption=(
             "MB: peak RSS (VmHWM) minus RSS before rendering, per case in a fresh process. "
             "dense*: extrapolated linearly in pixels from a 1-pixel image and a window of the same camera "
-            "(pixels x Gaussians <= --dense-budget); its MB is that of the window. "
+            "(pixels x Gaussians <= --dense-budget); its MB is that of the window; '-': skipped (budget 0) or "
+            "the window was not slower than one pixel (too small to measure). "
             "x torch / x dense: forward+backward time of that method over cpu-fast's."
         ),
     )
