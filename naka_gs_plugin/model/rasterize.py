@@ -36,7 +36,7 @@ import torch
 from jaxtyping import Float, Int
 from torch import Tensor
 
-from naka_gs_plugin.model.projection import pixel_bounds, project_gaussians, sh_colors
+from naka_gs_plugin.model.projection import Projection, pixel_bounds, project_gaussians, sh_colors
 
 ALPHA_MAX = 0.999
 ALPHA_MIN = 1.0 / 255.0
@@ -394,6 +394,12 @@ def rasterize_to_pixels_sparse(
     return _SparseComposite.apply(means2d, conics, opacities, colors, backgrounds, plan, width, height, absgrad)
 
 
+def _shade_torch(means: Tensor, colors: Tensor, viewmats: Tensor, degree: int) -> Tensor:
+    """:func:`sh_colors` on [N, K, 3] (shared by the cameras) or [C, N, K, 3] coefficients."""
+    coeffs = colors.expand(viewmats.shape[0], *colors.shape) if colors.dim() == 3 else colors
+    return sh_colors(means, coeffs, viewmats, degree)
+
+
 def rasterization_with_compositor(
     compositor: Compositor,
     means: Float[Tensor, "N 3"],
@@ -412,8 +418,13 @@ def rasterization_with_compositor(
     render_mode: RenderMode = "RGB",
     rasterize_mode: Literal["classic", "antialiased"] = "classic",
     eps2d: float = 0.3,
+    project: Callable[..., Projection] = project_gaussians,
+    shade: Optional[Callable[[Tensor, Tensor, Tensor, int], Tensor]] = None,
 ) -> Tuple[Float[Tensor, "C H W X"], Float[Tensor, "C H W 1"], Dict]:
-    """gsplat 1.4.0 ``rasterization`` (unpacked, pinhole) with a pluggable compositing step."""
+    """gsplat 1.4.0 ``rasterization`` (unpacked, pinhole) with pluggable steps: ``compositor``, and
+    ``project`` / ``shade`` (``project_gaussians``'s and ``shade(means, colors, viewmats, sh_degree)``
+    interfaces, ``colors`` as given: [N, K, 3] or [C, N, K, 3]; default the torch reference)."""
+    shade = shade or _shade_torch
     n = means.shape[0]
     n_cams = viewmats.shape[0]
     if render_mode not in ("RGB", "D", "ED", "RGB+D", "RGB+ED"):
@@ -425,7 +436,7 @@ def rasterization_with_compositor(
     if opacities.shape != (n,) or viewmats.shape != (n_cams, 4, 4) or Ks.shape != (n_cams, 3, 3):
         raise ValueError(f"bad shapes: opacities {opacities.shape}, viewmats {viewmats.shape}, Ks {Ks.shape}")
 
-    proj = project_gaussians(
+    proj = project(
         means,
         quats,
         scales,
@@ -449,8 +460,7 @@ def rasterization_with_compositor(
     else:
         if not (colors.dim() == 3 and colors.shape[0] == n) and colors.shape[:2] != (n_cams, n):
             raise ValueError(f"SH colors must be [N, K, 3] or [C, N, K, 3], got {tuple(colors.shape)}")
-        coeffs = colors.expand(n_cams, *colors.shape) if colors.dim() == 3 else colors
-        feats = sh_colors(means, coeffs, viewmats, sh_degree)
+        feats = shade(means, colors, viewmats, sh_degree)
 
     if render_mode in ("RGB+D", "RGB+ED"):
         feats = torch.cat([feats, proj.depths[..., None]], dim=-1)

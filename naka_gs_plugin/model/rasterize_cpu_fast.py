@@ -39,6 +39,7 @@ from __future__ import annotations
 import threading
 import time
 from contextlib import contextmanager
+from functools import partial
 from typing import Dict, Iterator, Literal, Optional, Set, Tuple
 
 import numba
@@ -57,7 +58,15 @@ from naka_gs_plugin.model.project_cpu_fast import (
     project_gaussians,
     sh_colors,
 )
-from naka_gs_plugin.model.rasterize import _ENUM_SLACK, ALPHA_MAX, ALPHA_MIN, TILE_SIZE, TRANSMITTANCE_MIN, RenderMode
+from naka_gs_plugin.model.rasterize import (
+    _ENUM_SLACK,
+    ALPHA_MAX,
+    ALPHA_MIN,
+    TILE_SIZE,
+    TRANSMITTANCE_MIN,
+    RenderMode,
+    rasterization_with_compositor,
+)
 
 VIS_STORE_MAX = 1 << 27
 """Most ``exp(-sigma)`` values (one per box pixel of each list entry; ~3x the composited pairs for
@@ -737,81 +746,30 @@ def rasterization(
     eps2d: float = 0.3,
 ) -> Tuple[Float[Tensor, "C H W X"], Float[Tensor, "C H W 1"], Dict]:
     """:func:`naka_gs_plugin.model.rasterize.rasterization` (gsplat 1.4.0 interface, same outputs
-    and ``meta``) with compiled projection, SH colours and compositing; CPU tensors only.
-
-    The flow is ``rasterization_with_compositor``'s, with the compiled
-    :mod:`~naka_gs_plugin.model.project_cpu_fast` in place of the torch projection and SH.
-    """
-    n = means.shape[0]
-    n_cams = viewmats.shape[0]
-    if render_mode not in ("RGB", "D", "ED", "RGB+D", "RGB+ED"):
-        raise ValueError(f"unknown render_mode {render_mode!r}")
-    if rasterize_mode not in ("classic", "antialiased"):
-        raise ValueError(f"unknown rasterize_mode {rasterize_mode!r}")
-    if means.shape != (n, 3) or quats.shape != (n, 4) or scales.shape != (n, 3):
-        raise ValueError(f"bad shapes: means {means.shape}, quats {quats.shape}, scales {scales.shape}")
-    if opacities.shape != (n,) or viewmats.shape != (n_cams, 4, 4) or Ks.shape != (n_cams, 3, 3):
-        raise ValueError(f"bad shapes: opacities {opacities.shape}, viewmats {viewmats.shape}, Ks {Ks.shape}")
+    and ``meta``) with compiled projection, SH colours and compositing; CPU tensors only."""
     if means.device.type != "cpu":
         raise ValueError(f"the cpu-fast rasterizer needs CPU tensors, got {means.device} -- use gsplat on CUDA")
     if means.dtype not in (torch.float32, torch.float64):
         raise ValueError(f"the cpu-fast rasterizer supports float32/float64, got {means.dtype}")
     warm_up(means.dtype)
-
-    proj = project_gaussians(
+    return rasterization_with_compositor(
+        partial(rasterize_to_pixels_cpu_fast, absgrad=absgrad),
         means,
         quats,
         scales,
+        opacities,
+        colors,
         viewmats,
         Ks,
         width,
         height,
-        eps2d=eps2d,
         near_plane=near_plane,
         far_plane=far_plane,
-        calc_compensations=rasterize_mode == "antialiased",
+        sh_degree=sh_degree,
+        backgrounds=backgrounds,
+        render_mode=render_mode,
+        rasterize_mode=rasterize_mode,
+        eps2d=eps2d,
+        project=project_gaussians,
+        shade=sh_colors,
     )
-    opacities = opacities[None, :].expand(n_cams, n)
-    if proj.compensations is not None:
-        opacities = opacities * proj.compensations
-
-    if sh_degree is None:
-        if not (colors.dim() == 2 and colors.shape[0] == n) and colors.shape[:2] != (n_cams, n):
-            raise ValueError(f"colors must be [N, D] or [C, N, D], got {tuple(colors.shape)}")
-        feats = colors.expand(n_cams, n, colors.shape[-1]) if colors.dim() == 2 else colors
-    else:
-        if not (colors.dim() == 3 and colors.shape[0] == n) and colors.shape[:2] != (n_cams, n):
-            raise ValueError(f"SH colors must be [N, K, 3] or [C, N, K, 3], got {tuple(colors.shape)}")
-        feats = sh_colors(means, colors, viewmats, sh_degree)
-
-    if render_mode in ("RGB+D", "RGB+ED"):
-        feats = torch.cat([feats, proj.depths[..., None]], dim=-1)
-        if backgrounds is not None:
-            backgrounds = torch.cat([backgrounds, backgrounds.new_zeros(n_cams, 1)], dim=-1)
-    elif render_mode in ("D", "ED"):
-        feats = proj.depths[..., None]
-        if backgrounds is not None:
-            backgrounds = backgrounds.new_zeros(n_cams, 1)
-
-    render_colors, render_alphas = rasterize_to_pixels_cpu_fast(
-        proj.means2d, proj.conics, feats, opacities, proj.depths, proj.radii, width, height, backgrounds, absgrad
-    )
-    if render_mode in ("ED", "RGB+ED"):
-        render_colors = torch.cat(
-            [render_colors[..., :-1], render_colors[..., -1:] / render_alphas.clamp(min=1e-10)],
-            dim=-1,
-        )
-    meta = {
-        "camera_ids": None,
-        "gaussian_ids": None,
-        "radii": proj.radii,
-        "means2d": proj.means2d,
-        "depths": proj.depths,
-        "conics": proj.conics,
-        "opacities": opacities,
-        "width": width,
-        "height": height,
-        "n_cameras": n_cams,
-        "tile_size": TILE_SIZE,
-    }
-    return render_colors, render_alphas, meta
