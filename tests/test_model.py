@@ -10,6 +10,7 @@ from nerfstudio.models.splatfacto import RGB2SH
 from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig
 from naka_gs_plugin.enhance.cli import load_rgb
 from naka_gs_plugin.model.naka_gs_model import NakaGSModelConfig, NonFiniteTrainingError, viewmat_from_c2w
+from tests.helpers import train_steps
 
 
 def _model(n=400, seed_rgb=True, **overrides):
@@ -95,22 +96,6 @@ def test_lpips_uses_a_local_weights_file(frames, tmp_path):
     assert math.isfinite(metrics["lpips"])
 
 
-def _train(model, cameras, images, steps):
-    opts = {k: torch.optim.Adam([p], lr=1e-3) for k, p in model.gauss_params.items()}
-    model.train()
-    for step in range(steps):
-        model.step, model.optimizers = step, opts
-        i = step % len(images)
-        outputs = model.get_outputs(cameras[i : i + 1])
-        loss = model.get_loss_dict(outputs, {"image": images[i]})["main_loss"]
-        loss.backward()
-        for opt in opts.values():
-            opt.step()
-            opt.zero_grad()
-        model.step_post_backward(step)
-    return loss
-
-
 def test_densification_changes_the_gaussian_count_on_cpu(frames):
     cameras, images = frames
     # DefaultStrategy refines when step > warmup, step % refine_every == 0 and, after an opacity
@@ -120,7 +105,7 @@ def test_densification_changes_the_gaussian_count_on_cpu(frames):
     grow = model.strategy._grow_gs
     model.strategy._grow_gs = lambda params, *a: grown.append((grow(params, *a), len(params["means"]))) or grown[-1][0]
     before = model.num_points
-    _train(model, cameras, images, steps=11)
+    train_steps(model, cameras, images, steps=11)
     (n_dupli, n_split), after_grow = grown[0]
     assert n_dupli + n_split > 0 and after_grow == before + n_dupli + n_split, "DefaultStrategy grew nothing on CPU"
     assert model.num_points != before
@@ -130,7 +115,7 @@ def test_densification_changes_the_gaussian_count_on_cpu(frames):
 def test_non_finite_parameters_stop_training(frames):
     cameras, images = frames
     model, _, _ = _model()
-    _train(model, cameras, images, steps=1)
+    train_steps(model, cameras, images, steps=1)
     with torch.no_grad():
         model.gauss_params["scales"][0, 0] = float("nan")
     with pytest.raises(NonFiniteTrainingError, match="non-finite Gaussian parameters \\(scales\\)"):
@@ -158,6 +143,6 @@ def test_degenerate_gaussians_train_without_nan(frames):
         model.gauss_params["quats"][20:30] = 0.0  # zero quaternion
         model.gauss_params["opacities"][30:40] = 30.0
         model.gauss_params["opacities"][40:50] = -30.0
-    loss = _train(model, cameras, images, steps=2)
+    loss = train_steps(model, cameras, images, steps=2)
     assert torch.isfinite(loss)
     assert all(torch.isfinite(p).all() for p in model.gauss_params.values())

@@ -17,6 +17,7 @@ from naka_gs_plugin.model.projection import project_gaussians
 from naka_gs_plugin.model.rasterize import ALPHA_MIN, rasterization
 from naka_gs_plugin.model.rasterize_cpu_fast import rasterize_to_pixels_cpu_fast
 from naka_gs_plugin.model.rasterize_dense import rasterize_to_pixels_dense
+from tests.helpers import train_steps
 
 F32, F64 = torch.float32, torch.float64
 PARAMS = ("means", "quats", "scales", "opacities", "colors")
@@ -303,20 +304,8 @@ def _train(rasterizer, toy_scene, steps=30):
     )
     box = SceneBox(aabb=torch.tensor([[-1.0, -1, -1], [1, 1, 1]]))
     model = cfg.setup(scene_box=box, num_train_data=len(images), seed_points=(xyz, rgb))
-    opts = {k: torch.optim.Adam([p], lr=1e-3) for k, p in model.gauss_params.items()}
-    model.train()
     counts = []
-    for step in range(steps):
-        model.step, model.optimizers = step, opts
-        i = step % len(images)
-        outputs = model.get_outputs(cameras[i : i + 1])
-        loss = model.get_loss_dict(outputs, {"image": images[i]})["main_loss"]
-        loss.backward()
-        for opt in opts.values():
-            opt.step()
-            opt.zero_grad()
-        model.step_post_backward(step)
-        counts.append(model.num_points)
+    loss = train_steps(model, cameras, images, steps, after_step=lambda _: counts.append(model.num_points))
     return model, float(loss), counts
 
 
