@@ -13,20 +13,20 @@ residual, timings).
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Optional
 
 import numpy as np
 import tyro
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from naka_gs_plugin.points.seeding import PointInitConfig, TrainingFrame, describe, prepare_points
+from naka_gs_plugin.points.seeding import PointInitConfig, PPMSettings, TrainingFrame, describe, prepare_points
 from naka_gs_plugin.points.sources import PointSourceError, find_scene_source, load_points
 
 
-@dataclass
-class PPMCommand:
+@dataclass(kw_only=True)
+class PPMCommand(PPMSettings):
     """Clean a point cloud with Naka-GS's PPM (voxel pooling + progressive pruning)."""
 
     input: tyro.conf.Positional[Path]
@@ -37,24 +37,6 @@ class PPMCommand:
     """JSON summary path (default: OUT with .json)."""
     scene: Optional[Path] = None
     """lowlight-data scene whose training frame the points are aligned and normalized to."""
-    align: Literal["sim3", "rigid", "none"] = "sim3"
-    """Alignment to the scene's training cameras (needs --scene)."""
-    ppm: bool = True
-    """Run PPM; False only aligns/normalizes and drops non-finite and duplicate points."""
-    voxel_size: float = 0.01
-    """PPM voxel edge (normalized scene units with --scene, else source units)."""
-    tau0: float = 0.005
-    """Initial pruning distance threshold (same units)."""
-    beta: float = 0.01
-    """Threshold growth rate per pruning iteration."""
-    iterations: int = 6
-    """Pruning iterations."""
-    min_points: int = 5000
-    """Minimum points kept by pruning (an iteration going below is rolled back and pruning stops)."""
-    tau_update: Literal["reference", "paper"] = "reference"
-    """tau *= exp(beta * N / M0) with N the count before (reference code) or after (paper) pruning."""
-    seed: int = 42
-    """Seed of the pruning draws."""
 
     def main(self) -> dict:
         source = self.input
@@ -76,11 +58,7 @@ class PPMCommand:
                 f"voxel {self.voxel_size} and tau0 {self.tau0} are in the source's units",
                 markup=False,
             )
-        init = PointInitConfig(
-            points=str(source), align=self.align, ppm=self.ppm, voxel_size=self.voxel_size, tau0=self.tau0,
-            beta=self.beta, iterations=self.iterations, min_points=self.min_points, tau_update=self.tau_update,
-            seed=self.seed,
-        )  # fmt: skip
+        init = PointInitConfig(points=str(source), **{f.name: getattr(self, f.name) for f in fields(PPMSettings)})
         xyz, rgb, summary = prepare_points(cloud, frame, init)
         summary["scene"] = str(scene) if scene is not None else None
         write_ply(self.out, xyz, rgb)

@@ -40,23 +40,19 @@ MIN_SEED_POINTS = 4
 
 
 @dataclass
-class PointInitConfig:
-    """Where the Gaussians start (``--pipeline.model.init.*``)."""
+class PPMSettings:
+    """Alignment and PPM parameters, shared by ``--pipeline.model.init`` and ``naka-gs-ppm``."""
 
-    points: str = "auto"
-    """``auto``: the scene's own points (sparse/0, sparse, colmap_sparse/0, points.ply), else
-    triangulation from the enhanced training views, else random; ``triangulate``: always
-    triangulate; ``random``: splatfacto's random init; or a path (.ply, COLMAP model folder, VGGT
-    output folder)."""
     align: Literal["sim3", "rigid", "none"] = "sim3"
     """Map the source frame onto the training cameras by its camera centres; ``none``: the points
     are already in the frame of transforms_train.json."""
     ppm: bool = True
-    """Clean the points with PPM (voxel pooling + progressive pruning) before seeding."""
+    """Clean the points with PPM (voxel pooling + progressive pruning) before seeding; False only
+    aligns/normalizes and drops non-finite and duplicate points."""
     voxel_size: float = 0.01
-    """PPM voxel edge, normalized scene units."""
+    """PPM voxel edge, normalized scene units (``naka-gs-ppm`` without ``--scene``: the source's units)."""
     tau0: float = 0.005
-    """Initial pruning distance threshold, normalized scene units."""
+    """Initial pruning distance threshold, same units."""
     beta: float = 0.01
     """Threshold growth rate per pruning iteration."""
     iterations: int = 6
@@ -67,6 +63,17 @@ class PointInitConfig:
     """tau *= exp(beta * N / M0) with N the count before (reference code) or after (paper) pruning."""
     seed: int = 42
     """Seed of the pruning draws."""
+
+
+@dataclass
+class PointInitConfig(PPMSettings):
+    """Where the Gaussians start (``--pipeline.model.init.*``)."""
+
+    points: str = "auto"
+    """``auto``: the scene's own points (sparse/0, sparse, colmap_sparse/0, points.ply), else
+    triangulation from the enhanced training views, else random; ``triangulate``: always
+    triangulate; ``random``: splatfacto's random init; or a path (.ply, COLMAP model folder, VGGT
+    output folder)."""
     triangulate: bool = True
     """In ``auto``, triangulate from the enhanced training views when the scene has no points
     (False: go straight to random init)."""
