@@ -14,14 +14,15 @@ the result is written as a ``lowlight-data`` scene that references the **origina
 Poses stay in COLMAP's world frame (no re-orientation: the dataparser normalizes), so the sparse
 points and the transforms share one frame. The held-out views carry low-light images, not
 normal-light truth. Everything is staged in a hidden sibling folder and moved into place only when
-at least 3 images registered: a failed run leaves nothing behind.
+at least 3 images registered: a failed run leaves nothing behind. The scene's ``.naka-gs-output``
+marker lists its files; ``--overwrite`` replaces only such a folder holding nothing else, and an
+--output-dir equal to, inside or containing --data is refused.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import re
 import shutil
 import subprocess
@@ -40,6 +41,14 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from naka_gs_plugin.data.images import ImageReadError, read_rgb
+from naka_gs_plugin.data.safe_io import (
+    UnsafeOutputError,
+    atomic_write,
+    check_not_input,
+    check_replaceable,
+    publish_dir,
+    staging_dir,
+)
 from naka_gs_plugin.enhance.correction import DEFAULT_WEIGHTS
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
 from naka_gs_plugin.points.sfm import (
@@ -59,6 +68,8 @@ VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v")
 MIN_REGISTERED = 3
 ENHANCE_CHUNK = 16
 """Images enhanced per call with per-image statistics (bounds memory on large captures)."""
+PNG_FAST = [cv2.IMWRITE_PNG_COMPRESSION, 1]
+"""cv2 PNG options of the SfM copies (temporary: speed over size)."""
 GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 """Right-multiply an OpenCV camera-to-world to get the OpenGL one (and back)."""
 
@@ -159,7 +170,8 @@ class ProcessData:
     enhance: EnhanceConfig = field(default_factory=lambda: EnhanceConfig(use_cache=False))
     """Enhancement of the copies SfM sees (the scene keeps the originals); ``--enhance.method none`` = raw."""
     overwrite: bool = False
-    """Replace an existing non-empty --output-dir (only after the new scene is complete)."""
+    """Replace an existing non-empty --output-dir that naka-gs-process-data wrote (its .naka-gs-output
+    marker lists every file in it), only after the new scene is complete."""
     refine_principal_point: bool = False
     """Let bundle adjustment move the principal point (COLMAP keeps it at the image centre by default)."""
     seed: int = 0
@@ -168,16 +180,14 @@ class ProcessData:
     def main(self) -> Dict[str, object]:
         self._check_args()
         out = self.output_dir.resolve()
-        out.parent.mkdir(parents=True, exist_ok=True)
-        stage = out.parent / f".{out.name}.partial-{os.getpid()}"
-        shutil.rmtree(stage, ignore_errors=True)
-        stage.mkdir()
+        stage = staging_dir(out)
         try:
             report = self._process(stage)
-            self._publish(stage, out)
-        except BaseException:
-            shutil.rmtree(stage, ignore_errors=True)
-            raise
+            publish_dir(stage, out, "naka-gs-process-data", "--output-dir", self.overwrite)
+        except UnsafeOutputError as err:
+            raise ProcessDataError(str(err)) from None
+        finally:
+            shutil.rmtree(stage, ignore_errors=True)  # our own staging folder; gone already once published
         report["scene"] = str(out)
         self._print(report)
         return report
@@ -193,11 +203,11 @@ class ProcessData:
             raise ProcessDataError(f"--eval-every {self.eval_every}: must be >= 2 (one view in N is held out)")
         if self.max_image_size < 64 or self.video_fps <= 0 or self.sequential_overlap < 1:
             raise ProcessDataError("--max-image-size must be >= 64, --video-fps > 0, --sequential-overlap >= 1")
-        out = self.output_dir
-        if out.exists() and (not out.is_dir() or any(out.iterdir())) and not self.overwrite:
-            raise ProcessDataError(
-                f"{out}: already exists and is not empty -- choose another --output-dir or --overwrite"
-            )
+        try:
+            check_not_input(self.output_dir, [self.data], "--output-dir")
+            check_replaceable(self.output_dir, "--output-dir", self.overwrite)
+        except UnsafeOutputError as err:
+            raise ProcessDataError(str(err)) from None
 
     def _process(self, stage: Path) -> Dict[str, object]:
         seconds: Dict[str, float] = {}
@@ -320,8 +330,11 @@ class ProcessData:
             end = min(start + chunk, len(sources))
             out = enhancer.enhance_images(batch, description=f"Enhancing images {start + 1}-{end} for SfM")
             for name, image in zip(sfm_names[start:end], out):
-                rgb = (image.numpy() * 255.0 + 0.5).astype(np.uint8)
-                cv2.imwrite(str(folder / name), rgb[..., ::-1], [cv2.IMWRITE_PNG_COMPRESSION, 1])
+                bgr = (image.numpy() * 255.0 + 0.5).astype(np.uint8)[..., ::-1]
+                try:
+                    atomic_write(folder / name, lambda tmp: cv2.imwrite(str(tmp), bgr, PNG_FAST))
+                except OSError as err:
+                    raise ProcessDataError(f"{err} -- free disk space next to --output-dir") from None
         return enhancer.correction_path
 
     def _write_scene(
@@ -370,16 +383,6 @@ class ProcessData:
             "camera": {"model": model.cameras[registered[0][1].camera_id].model_name, **intrinsics},
         }
 
-    def _publish(self, stage: Path, out: Path) -> None:
-        """Move the finished scene into place (an existing folder is replaced only now)."""
-        trash = None
-        if out.exists():
-            trash = out.parent / f".{out.name}.old-{os.getpid()}"
-            os.replace(out, trash)
-        os.replace(stage, out)
-        if trash is not None:
-            shutil.rmtree(trash, ignore_errors=True)
-
     def _print(self, report: Dict[str, object]) -> None:
         table = Table(title=f"naka-gs-process-data: {report['scene']}")
         table.add_column("quantity")
@@ -406,7 +409,7 @@ def entrypoint() -> None:
     args = tyro.cli(ProcessData)
     try:
         args.main()
-    except (ProcessDataError, SfMError) as err:
+    except (ProcessDataError, SfMError, OSError) as err:  # OSError: disk full or permissions, names the file
         raise SystemExit(f"naka-gs-process-data: {err}") from None
 
 

@@ -4,30 +4,75 @@ Dark captures live in the bottom few percent of the range: an 8-bit read of a 16
 (what PIL, hence nerfstudio's ``InputDataset``, does for 48-bit RGB) keeps only the top byte and
 turns most of a dark image into a handful of levels. Here 8- and 16-bit files (and float TIFFs)
 are read with OpenCV at full precision into float32 sRGB in [0, 1].
+
+Every read is checked in full: OpenCV fills the missing part of a truncated JPEG with grey and
+only prints a libjpeg warning, so JPEGs are also decoded by PIL with truncated images refused
+(whatever ``PIL.ImageFile.LOAD_TRUNCATED_IMAGES`` says); PNG/TIFF decoders already fail on a cut file.
 """
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import cv2
 import numpy as np
 from jaxtyping import Float
+from PIL import Image, ImageFile
 
 
 class ImageReadError(ValueError):
     """An image that cannot be used; the message names the file and the fix."""
 
 
+_RESTORE = "restore the complete file (copy it again from the camera or backup) or remove it from the scene"
+
+
+def _check_jpeg_complete(path: Path, data: bytes) -> None:
+    """Decode ``data`` with PIL, refusing truncation (OpenCV would silently pad it with grey)."""
+    saved = ImageFile.LOAD_TRUNCATED_IMAGES
+    ImageFile.LOAD_TRUNCATED_IMAGES = False
+    try:
+        with Image.open(io.BytesIO(data)) as im:
+            im.load()
+    except OSError as err:
+        raise ImageReadError(f"{path}: truncated or corrupt JPEG ({err}) -- {_RESTORE}") from None
+    finally:
+        ImageFile.LOAD_TRUNCATED_IMAGES = saved
+
+
+def read_raw(path: Path) -> np.ndarray:
+    """An image file decoded as stored (OpenCV: BGR(A) or grey, uint8/uint16/float), checked complete."""
+    try:
+        data = Path(path).read_bytes()
+    except OSError as err:
+        raise ImageReadError(f"{path}: cannot be read ({err.strerror or err}) -- {_RESTORE}") from None
+    if not data:
+        raise ImageReadError(f"{path}: empty file (0 bytes) -- {_RESTORE}")
+    arr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED | cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
+    if arr is None:
+        raise ImageReadError(
+            f"{path}: unreadable image (truncated, corrupt or not a PNG/JPEG/TIFF) -- {_RESTORE}"
+        )
+    if data[:3] == b"\xff\xd8\xff":
+        _check_jpeg_complete(path, data)
+    if arr.size == 0:
+        raise ImageReadError(f"{path}: image has no pixels -- {_RESTORE}")
+    return arr
+
+
 def read_rgb(path: Path) -> Float[np.ndarray, "H W 3"]:
     """An image file as float32 sRGB in [0, 1]: 8-bit /255, 16-bit /65535, float as stored.
 
-    Grey images are repeated to 3 channels, alpha is dropped. Non-finite pixels (float files)
-    are rejected rather than propagated into training.
+    Grey images are repeated to 3 channels, alpha is dropped. Truncated, empty and non-image
+    files, and non-finite pixels (float files), raise :class:`ImageReadError` rather than
+    reaching training.
     """
-    arr = cv2.imread(str(path), cv2.IMREAD_UNCHANGED | cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
-    if arr is None:
-        raise ImageReadError(f"{path}: unreadable image -- replace it with a valid PNG/JPEG/TIFF")
+    return to_rgb01(read_raw(path), path)
+
+
+def to_rgb01(arr: np.ndarray, path: Path) -> Float[np.ndarray, "H W 3"]:
+    """A :func:`read_raw` array as float32 RGB in [0, 1] (see :func:`read_rgb`; ``path`` names errors)."""
     if arr.ndim == 2:
         arr = arr[:, :, None].repeat(3, axis=2)
     arr = arr[..., :3][..., ::-1]  # OpenCV's BGR(A) -> RGB

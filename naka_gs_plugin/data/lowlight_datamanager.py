@@ -22,7 +22,7 @@ from nerfstudio.data.datasets.base_dataset import InputDataset
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 
-from naka_gs_plugin.data.images import read_rgb
+from naka_gs_plugin.data.images import read_raw, read_rgb
 from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
 
@@ -48,6 +48,12 @@ class LowLightDataset(InputDataset):
 
     def __bool__(self) -> bool:
         return self.has_ground_truth and len(self) > 0
+
+    def get_numpy_image(self, image_idx: int) -> np.ndarray:
+        """nerfstudio's 8-bit PIL read (``cache_images_type uint8``), after a full check of the file
+        (PIL may be set to pad truncated images; a broken file gets one line naming it)."""
+        read_raw(self._dataparser_outputs.image_filenames[image_idx])
+        return super().get_numpy_image(image_idx)
 
     def get_image_float32(self, image_idx: int) -> Float[Tensor, "H W 3"]:
         """The image at full bit depth (16-bit captures keep their dark detail), float32 sRGB [0, 1]."""

@@ -43,11 +43,18 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 from torch import Tensor
 
-from naka_gs_plugin.data.images import read_rgb
+from naka_gs_plugin.data.images import ImageReadError, read_raw, to_rgb01
+from naka_gs_plugin.data.safe_io import atomic_write, usable_cache_dir
 from naka_gs_plugin.enhance.pipeline import default_cache_dir
 
 MAX_AUTO_RESOLUTION = 1600
 """Auto downscale picks the smallest power of two bringing the longer side to at most this (as nerfstudio-data)."""
+
+MAX_FOCAL_RATIO = 100.0
+"""Largest focal length accepted, in image sizes (a 0.6 degree field of view): larger is a unit error."""
+ROTATION_TOLERANCE = 1e-2
+"""Largest ``|R^T R - I|`` entry accepted for a pose's rotation block (exports round to ~1e-7)."""
+DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
 
 _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".JPG", ".JPEG", ".PNG")
 
@@ -98,16 +105,44 @@ def load_transforms(path: Path) -> dict:
     return meta
 
 
-def _intrinsic(meta: dict, frame: dict, key: str, path: Path) -> float:
+def _number(value: object, what: str, path: Path) -> float:
+    """``value`` as a float; strings, booleans and nulls are refused (a json typo, not a number)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise _fail(path, f"{what} is {value!r}, not a number", "write it as a json number")
+    return float(value)
+
+
+def _intrinsic(meta: dict, frame: dict, key: str, path: Path, where: str) -> float:
     value = frame.get(key, meta.get(key))
     if value is None and key in ("fl_x", "fl_y") and "camera_angle_x" in meta:
-        w = float(frame.get("w", meta.get("w", 0)))
-        return 0.5 * w / math.tan(0.5 * float(meta["camera_angle_x"]))
+        w = _number(frame.get("w", meta.get("w", 0)), f"{where} 'w'", path)
+        angle = _number(meta["camera_angle_x"], "'camera_angle_x'", path)
+        if not 0.0 < angle < math.pi:
+            raise _fail(path, f"'camera_angle_x' is {angle} rad", "give the horizontal field of view in (0, pi) rad")
+        return 0.5 * w / math.tan(0.5 * angle)
     if value is None and key in ("cx", "cy"):
-        return 0.5 * float(frame.get("w" if key == "cx" else "h", meta.get("w" if key == "cx" else "h", 0)))
+        size = frame.get("w" if key == "cx" else "h", meta.get("w" if key == "cx" else "h", 0))
+        return 0.5 * _number(size, f"{where} '{'w' if key == 'cx' else 'h'}'", path)
     if value is None:
         raise _fail(path, f"missing intrinsic '{key}'", "give fl_x fl_y cx cy w h at the top level or per frame")
-    return float(value)
+    return _number(value, f"{where} '{key}'", path)
+
+
+def _check_intrinsics(intr: List[float], path: Path, where: str) -> None:
+    """Finite, positive focal lengths and size, a focal length at most :data:`MAX_FOCAL_RATIO` image sizes."""
+    fx, fy, cx, cy, w, h = intr
+    if not all(math.isfinite(v) for v in intr):
+        raise _fail(path, f"{where} intrinsics fl_x fl_y cx cy w h = {intr} are not all finite", "fix the camera")
+    if w < 1 or h < 1 or w != round(w) or h != round(h):
+        raise _fail(path, f"{where} image size w x h = {w} x {h}", "give the image width and height in whole pixels")
+    if fx <= 0 or fy <= 0:
+        raise _fail(path, f"{where} focal length fl_x, fl_y = {fx}, {fy}", "focal lengths are positive, in pixels")
+    if max(fx, fy) > MAX_FOCAL_RATIO * max(w, h):
+        raise _fail(
+            path,
+            f"{where} focal length fl_x, fl_y = {fx:g}, {fy:g} px is over {MAX_FOCAL_RATIO}x the image size",
+            "give focal lengths in pixels (not mm or metres)",
+        )
 
 
 def _resolve_image(scene: Path, frame: dict, index: int, path: Path) -> Path:
@@ -133,6 +168,15 @@ def _pose(frame: dict, index: int, path: Path) -> Tensor:
         ) from None
     if mat.shape != (4, 4) or not torch.isfinite(mat).all():
         raise _fail(path, f"frame {index} 'transform_matrix' is not a finite 4x4", "give a 4x4 camera-to-world matrix")
+    rot = mat[:3, :3]
+    error = float((rot.T @ rot - torch.eye(3, dtype=rot.dtype)).abs().max())
+    if error > ROTATION_TOLERANCE or float(torch.linalg.det(rot)) <= 0:
+        raise _fail(
+            path,
+            f"frame {index} 'transform_matrix' rotation block is not a rotation (|R^T R - I| = {error:.3g}, "
+            f"det {float(torch.linalg.det(rot)):.3g})",
+            "give a rigid camera-to-world (orthonormal rotation with det +1, no scale)",
+        )
     return mat
 
 
@@ -157,8 +201,13 @@ def read_split(scene: Path, json_name: str) -> SplitFrames:
             raise _fail(path, f"frame {i} is not an object", "each frame needs file_path and transform_matrix")
         images.append(_resolve_image(scene, frame, i, path))
         poses.append(_pose(frame, i, path))
-        intr.append([_intrinsic(meta, frame, k, path) for k in ("fl_x", "fl_y", "cx", "cy", "w", "h")])
-        k = {key: float(frame.get(key, meta.get(key, 0.0)) or 0.0) for key in ("k1", "k2", "k3", "k4", "p1", "p2")}
+        where = f"frame {i} ({frame.get('file_path')})"
+        intr.append([_intrinsic(meta, frame, k, path, where) for k in ("fl_x", "fl_y", "cx", "cy", "w", "h")])
+        _check_intrinsics(intr[-1], path, where)
+        raw = {key: frame.get(key, meta.get(key)) for key in DISTORTION_KEYS}
+        k = {key: 0.0 if v is None else _number(v, f"{where} '{key}'", path) for key, v in raw.items()}
+        if not all(math.isfinite(v) for v in k.values()):
+            raise _fail(path, f"{where} distortion {k} is not finite", "fix or remove the distortion coefficients")
         dist.append(camera_utils.get_distortion_params(**k).tolist())
     if not images:
         raise _fail(path, "no frames", "list at least one frame")
@@ -287,22 +336,35 @@ def _check_sizes(frames: SplitFrames) -> None:
 
 
 def downscaled_copy(path: Path, factor: int, cache_dir: Optional[Path] = None) -> Path:
-    """Path of ``path`` downscaled by ``factor`` (area filter) in the writable cache; made once."""
+    """Path of ``path`` downscaled by ``factor`` (area filter) in the writable cache; made once.
+
+    A cached copy that does not decode to the expected size (cut short, corrupted) is made again,
+    with a warning; a new copy is written to a unique temporary name, checked, and renamed.
+    """
     digest = hashlib.sha1(f"{path.resolve()}|{path.stat().st_mtime_ns}|{path.stat().st_size}".encode()).hexdigest()[:16]
-    out = (cache_dir or default_cache_dir()) / "downscaled" / f"x{factor}" / f"{digest}_{path.stem}.png"
-    if out.exists():
-        return out
-    out.parent.mkdir(parents=True, exist_ok=True)
+    folder = usable_cache_dir(cache_dir or default_cache_dir()) / "downscaled" / f"x{factor}"
+    out = folder / f"{digest}_{path.stem}.png"
     with Image.open(path) as im:
         # Floor, as nerfstudio's Cameras.rescale_output_resolution does for the intrinsics.
         size = (int(im.width / factor), int(im.height / factor))
-    image = read_rgb(path)
+    if out.exists():
+        try:
+            cached = read_raw(out)
+        except ImageReadError:
+            cached = None
+        if cached is not None and (cached.shape[1], cached.shape[0]) == size:
+            return out
+        CONSOLE.log(f"[naka-gs] warning: cached copy {out} is corrupt; making it again", markup=False)
+    raw = read_raw(path)
+    folder.mkdir(parents=True, exist_ok=True)
     # INTER_AREA = box filter for integer factors; 16-bit sources stay 16-bit (dark detail lives there).
-    small = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
-    scale, dtype = (65535.0, np.uint16) if cv2.imread(str(path), cv2.IMREAD_UNCHANGED).dtype != np.uint8 else (255.0, np.uint8)
-    tmp = out.with_suffix(".tmp.png")
-    cv2.imwrite(str(tmp), np.round(small[..., ::-1] * scale).astype(dtype))
-    tmp.replace(out)
+    small = cv2.resize(to_rgb01(raw, path), size, interpolation=cv2.INTER_AREA)
+    scale, dtype = (255.0, np.uint8) if raw.dtype == np.uint8 else (65535.0, np.uint16)
+    pixels = np.round(small[..., ::-1] * scale).astype(dtype)
+    try:
+        atomic_write(out, lambda tmp: cv2.imwrite(str(tmp), pixels))
+    except OSError as err:
+        raise _fail(out, f"cannot write the downscaled copy ({err})", "free disk space or set NAKA_GS_CACHE") from None
     return out
 
 

@@ -4,11 +4,17 @@ Reads a ``lowlight-data`` scene's training images, enhances them exactly as the 
 does (same :class:`~naka_gs_plugin.enhance.pipeline.Enhancer`, same cache, including the
 correction network: ``--enhance.correction none|default|PATH --enhance.correction-mode MODE``), and
 writes 8-bit PNGs plus an optional contact sheet. Prints the throughput in images per second.
+
+The output folder is built next to --out and moved into place when complete; --out may not be,
+contain or lie inside a folder of input images, and an existing non-empty --out is replaced only
+if it holds nothing but an earlier naka-gs-enhance output. Errors print one line (exit status 2).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import shutil
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,12 +26,24 @@ import tyro
 from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 
-from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig
+from naka_gs_plugin.data.images import ImageReadError, read_raw
+from naka_gs_plugin.data.lowlight_dataparser import LowLightDataError, LowLightDataParserConfig, read_split
+from naka_gs_plugin.data.safe_io import (
+    UnsafeOutputError,
+    check_not_input,
+    check_replaceable,
+    publish_dir,
+    staging_dir,
+)
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
 
 
 def load_rgb(path: Path) -> torch.Tensor:
-    """An image file as ``uint8 [H, W, 3]`` sRGB (16-bit PNGs are reduced to 8 bit, alpha dropped)."""
+    """An image file as ``uint8 [H, W, 3]`` sRGB (16-bit PNGs are reduced to 8 bit, alpha dropped).
+
+    The file is checked in full first (:func:`~naka_gs_plugin.data.images.read_raw`): a truncated
+    JPEG raises :class:`ImageReadError` instead of being padded."""
+    read_raw(path)
     with Image.open(path) as im:
         return torch.from_numpy(np.array(im.convert("RGB")))
 
@@ -60,18 +78,36 @@ class EnhanceCLI:
     sheet_views: int = 4
 
     def main(self) -> List[Path]:
+        """Write the enhanced PNGs (and sheet) to ``out``; returns their final paths."""
+        originals = read_split(self.scene, "transforms_train.json").images
+        check_not_input(self.out, sorted({p.parent for p in originals}), "--out")
+        check_replaceable(self.out, "--out", None)
+        names = [f"{p.stem}.png" for p in originals]
+        if len(set(names)) < len(names):
+            dup = next(n for n in names if names.count(n) > 1)
+            raise UnsafeOutputError(
+                f"{self.scene}: two training images would both be written as --out/{dup} -- rename one"
+            )
         outputs = LowLightDataParserConfig(data=self.scene, downscale_factor=self.downscale_factor).setup()
         paths = outputs.get_dataparser_outputs("train").image_filenames
         images = [load_rgb(p) for p in paths]
         start = time.perf_counter()
         enhanced = Enhancer(self.enhance).enhance_images(images, description=f"Enhancing {self.scene.name}")
         seconds = time.perf_counter() - start
-        self.out.mkdir(parents=True, exist_ok=True)
-        written = []
-        for path, image in zip(paths, enhanced):
-            dst = self.out / f"{path.stem}.png"
-            Image.fromarray((image.numpy() * 255.0 + 0.5).astype(np.uint8)).save(dst)
-            written.append(dst)
+        out = self.out.resolve()
+        stage = staging_dir(out)
+        try:
+            self._write(stage, names, images, enhanced, seconds)
+            publish_dir(stage, out, "naka-gs-enhance", "--out", None)
+        finally:
+            shutil.rmtree(stage, ignore_errors=True)  # our own staging folder; gone already once published
+        return [self.out / name for name in names]
+
+    def _write(
+        self, stage: Path, names: List[str], images: List[torch.Tensor], enhanced: List[torch.Tensor], seconds: float
+    ) -> None:
+        for name, image in zip(names, enhanced):
+            Image.fromarray((image.numpy() * 255.0 + 0.5).astype(np.uint8)).save(stage / name)
         h, w = images[0].shape[:2]
         CONSOLE.log(
             f"[naka-gs] {len(images)} images of {w}x{h} in {seconds:.2f} s: {len(images) / seconds:.2f} images/s",
@@ -85,10 +121,15 @@ class EnhanceCLI:
                 rows.append([im.numpy() for im in naka_only.enhance_images(images[:k], description="Naka only (sheet)")])
             rows.append([im.numpy() for im in enhanced[:k]])
             sheet = contact_sheet(rows)
-            Image.fromarray(sheet).save(self.out / "before_after.png")
-            CONSOLE.log(f"[naka-gs] wrote {self.out / 'before_after.png'}", markup=False)
-        return written
+            Image.fromarray(sheet).save(stage / "before_after.png")
+            CONSOLE.log(f"[naka-gs] sheet: {self.out / 'before_after.png'}", markup=False)
 
 
 def entrypoint(args: Optional[Sequence[str]] = None) -> None:
-    tyro.cli(EnhanceCLI, args=args).main()
+    """Console script ``naka-gs-enhance``; bad input prints one line and exits with status 2."""
+    cli = tyro.cli(EnhanceCLI, args=args)
+    try:
+        cli.main()
+    except (UnsafeOutputError, LowLightDataError, ImageReadError, OSError) as err:  # OSError: e.g. missing weights
+        CONSOLE.print(f"naka-gs-enhance: {err}", markup=False, soft_wrap=True)
+        sys.exit(2)

@@ -27,6 +27,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from torch import Tensor
 
+from naka_gs_plugin.data.safe_io import atomic_write, usable_cache_dir
 from naka_gs_plugin.enhance.correction import (
     DEFAULT_MODE,
     DEFAULT_WEIGHTS,
@@ -42,10 +43,11 @@ CACHE_VERSION = 1
 
 
 def default_cache_dir() -> Path:
-    """``$NAKA_GS_CACHE``, else ``$XDG_CACHE_HOME/naka-gs``, else ``~/.cache/naka-gs`` (always writable)."""
+    """``$NAKA_GS_CACHE``, else ``$XDG_CACHE_HOME/naka-gs``, else ``~/.cache/naka-gs``; when that
+    cannot be written (read-only, a file, disk full) a private temporary folder, with one warning."""
     if os.environ.get("NAKA_GS_CACHE"):
-        return Path(os.environ["NAKA_GS_CACHE"])
-    return Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "naka-gs"
+        return usable_cache_dir(Path(os.environ["NAKA_GS_CACHE"]))
+    return usable_cache_dir(Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "naka-gs")
 
 
 @dataclass
@@ -104,7 +106,11 @@ class Enhancer:
 
     def __init__(self, config: EnhanceConfig) -> None:
         self.config = config
-        self.cache_dir = (config.cache_dir or default_cache_dir()) / "enhanced"
+        self.cache_dir: Optional[Path] = None
+        """Where enhanced images are cached; None with ``use_cache False`` (no cache is touched)."""
+        if config.use_cache:
+            self.cache_dir = usable_cache_dir(config.cache_dir or default_cache_dir()) / "enhanced"
+        self._cache_warned = False
         self.last_run = {"computed": 0, "cached": 0, "seconds": 0.0}
         """Counts of the last :meth:`enhance_images` call: images computed vs read from cache."""
         self.correction_path = config.correction_path() if config.method == "naka" else None
@@ -139,26 +145,38 @@ class Enhancer:
             scene = hashlib.sha1("".join(sorted(hashes)).encode()).hexdigest()
         return [hashlib.sha1(f"{params}|{h}|{scene}".encode()).hexdigest() for h in hashes]
 
-    def _read(self, key: str) -> Optional[Tensor]:
+    def _read(self, key: str, like: Tensor) -> Optional[Tensor]:
+        """The cached enhancement of ``like`` (an input image), or None: a miss, or a corrupt entry
+        (warned; it is recomputed and replaced)."""
+        if self.cache_dir is None:
+            return None
         path = self.cache_dir / f"{key}.npy"
-        if not (self.config.use_cache and path.exists()):
+        if not path.exists():
             return None
         try:
             arr = np.load(path)
-        except (OSError, ValueError):  # truncated by an interrupted write: recompute
+            ok = arr.dtype == np.uint16 and arr.shape == (*like.shape[:2], 3)
+        except (OSError, ValueError, EOFError):
+            ok = False
+        if not ok:
+            CONSOLE.log(f"[naka-gs] warning: cache entry {path} is corrupt; recomputing it", markup=False)
             return None
         return torch.from_numpy(arr.astype(np.float32) / 65535.0)
 
     def _write(self, key: str, image: Tensor) -> None:
-        if not self.config.use_cache:
+        """Store ``image`` atomically; a failed write (disk full, permissions) warns once and the run goes on."""
+        if self.cache_dir is None:
             return
-        self.cache_dir.mkdir(parents=True, exist_ok=True)
         # Raw uint16 .npy: lossless to 1.5e-5 and ~40x faster to read than a 16-bit PNG (1 ms vs 50 ms
         # at 1764x1172), which matters once the correction network makes recomputation expensive.
         arr = (image.detach().cpu().clamp(0, 1).numpy() * 65535.0).round().astype(np.uint16)
-        tmp = self.cache_dir / f"{key}.tmp.npy"
-        np.save(tmp, arr)
-        os.replace(tmp, self.cache_dir / f"{key}.npy")
+        try:
+            self.cache_dir.mkdir(parents=True, exist_ok=True)
+            atomic_write(self.cache_dir / f"{key}.npy", lambda tmp: np.save(tmp, arr))
+        except OSError as err:
+            if not self._cache_warned:
+                CONSOLE.log(f"[naka-gs] warning: not caching enhanced images ({err})", markup=False)
+                self._cache_warned = True
 
     def enhance_images(
         self, images: Sequence[UInt8[Tensor, "H W C"] | Float[Tensor, "H W C"]], description: str = "Enhancing"
@@ -169,7 +187,7 @@ class Enhancer:
             self.last_run = {"computed": 0, "cached": 0, "seconds": 0.0}
             return [to_float01(im) for im in images]
         keys = self._keys(images)
-        out: List[Optional[Tensor]] = [self._read(k) for k in keys]
+        out: List[Optional[Tensor]] = [self._read(k, im) for k, im in zip(keys, images)]
         todo = [i for i, o in enumerate(out) if o is None]
         naka_s = correction_s = 0.0
         if todo:
@@ -211,7 +229,7 @@ class Enhancer:
         }
         CONSOLE.log(
             f"[naka-gs] {description}: {len(images)} images, {len(todo)} computed, "
-            f"{len(images) - len(todo)} from cache ({self.cache_dir}) in {seconds:.2f} s",
+            f"{len(images) - len(todo)} from cache ({self.cache_dir or 'cache off'}) in {seconds:.2f} s",
             markup=False,
         )
         return [o for o in out if o is not None]

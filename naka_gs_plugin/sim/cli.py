@@ -2,10 +2,16 @@
 
 Relative paths inside the spec (a capture's folder) resolve against the current working
 directory: run from the repository root. Spec errors print one line and exit with status 2.
+
+The scene is generated in a hidden sibling of --out and moved into place when complete. An
+existing non-empty --out is replaced only if it holds nothing but an earlier naka-gs-sim scene
+(its ``.naka-gs-output`` marker lists the files), so no stale file of another scene survives;
+--out may not be, contain or lie inside the spec file or the captured scene it darkens.
 """
 
 from __future__ import annotations
 
+import shutil
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,8 +20,15 @@ from typing import Optional
 import tyro
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from naka_gs_plugin.data.safe_io import (
+    UnsafeOutputError,
+    check_not_input,
+    check_replaceable,
+    publish_dir,
+    staging_dir,
+)
 from naka_gs_plugin.sim.generate import generate
-from naka_gs_plugin.sim.spec import SimSpecError, load_spec
+from naka_gs_plugin.sim.spec import CaptureSource, SimSpecError, load_spec
 
 
 @dataclass
@@ -29,14 +42,27 @@ class SimArgs:
 
 
 def main(args: SimArgs) -> Path:
-    return generate(load_spec(args.spec), args.out, seed=args.seed)
+    """Generate the scene of ``args.spec`` into ``args.out`` (see the module docstring); returns ``args.out``."""
+    spec = load_spec(args.spec)
+    inputs = [args.spec] + ([spec.source.path] if isinstance(spec.source, CaptureSource) else [])
+    check_not_input(args.out, inputs, "--out")
+    check_replaceable(args.out, "--out", None)
+    out = args.out.resolve()
+    stage = staging_dir(out)
+    try:
+        generate(spec, stage, seed=args.seed)
+        publish_dir(stage, out, "naka-gs-sim", "--out", None)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)  # our own staging folder; gone already once published
+    CONSOLE.log(f"naka-gs-sim: scene ready in {args.out}", markup=False)
+    return args.out
 
 
 def entrypoint() -> None:
     args = tyro.cli(SimArgs, description=__doc__.splitlines()[0])
     try:
         main(args)
-    except SimSpecError as err:
+    except (SimSpecError, UnsafeOutputError) as err:
         CONSOLE.print(f"naka-gs-sim: {err}", markup=False, soft_wrap=True)
         sys.exit(2)
 
