@@ -128,17 +128,26 @@ def _visible_by_depth(radii, opacities, depths, alpha_min):
 def _make_records(entries, means2d, conics, opacities, colors, radii_f, consts, width, height):
     """Records (see ``REC_COLORS``) of the sorted entries and their pixel boxes
     (:func:`~naka_gs_plugin.model.projection.pixel_bounds`, evaluated in the inputs' dtype as there:
-    ``consts`` = (0.5, ALPHA_MAX, ALPHA_MIN, 0) in that dtype). Inputs are flat [C*N, ...]."""
+    ``consts`` = (0.5, ALPHA_MAX, ALPHA_MIN, 0) in that dtype). Inputs are flat [C*N, ...].
+
+    An entry with a non-finite centre, radius or conic, or whose box misses the image, gets the
+    empty box (0, -1, 0, -1): it covers no tile, so it is culled (a reversed box would index out of
+    bounds: absurd cameras and diverged Gaussians must not crash the process)."""
     n_dim = colors.shape[1]
     records = np.empty((entries.shape[0], REC_COLORS + n_dim), dtype=means2d.dtype)
     boxes = np.empty((entries.shape[0], 4), dtype=np.int64)
     for j in prange(entries.shape[0]):
         e = entries[j]
         mx, my, r = means2d[e, 0], means2d[e, 1], radii_f[e]
-        boxes[j, 0] = np.int64(max(np.ceil(mx - r - consts[0]), consts[3]))
-        boxes[j, 1] = np.int64(min(np.floor(mx + r - consts[0]), width - 1))
-        boxes[j, 2] = np.int64(max(np.ceil(my - r - consts[0]), consts[3]))
-        boxes[j, 3] = np.int64(min(np.floor(my + r - consts[0]), height - 1))
+        boxes[j, 0], boxes[j, 1], boxes[j, 2], boxes[j, 3] = 0, -1, 0, -1
+        finite = np.isfinite(mx) and np.isfinite(my) and np.isfinite(r)
+        if finite and np.isfinite(conics[e, 0]) and np.isfinite(conics[e, 1]) and np.isfinite(conics[e, 2]):
+            x0 = np.int64(max(np.ceil(mx - r - consts[0]), consts[3]))
+            x1 = np.int64(min(np.floor(mx + r - consts[0]), width - 1))
+            y0 = np.int64(max(np.ceil(my - r - consts[0]), consts[3]))
+            y1 = np.int64(min(np.floor(my + r - consts[0]), height - 1))
+            if x0 <= x1 and y0 <= y1:
+                boxes[j, 0], boxes[j, 1], boxes[j, 2], boxes[j, 3] = x0, x1, y0, y1
         records[j, 0], records[j, 1] = mx, my
         records[j, 2], records[j, 3], records[j, 4] = conics[e, 0], conics[e, 1], conics[e, 2]
         records[j, 5] = opacities[e]
