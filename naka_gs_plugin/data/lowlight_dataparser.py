@@ -323,6 +323,7 @@ def _check_sizes(frames: SplitFrames) -> None:
             with Image.open(path) as im:
                 size = im.size
         except OSError as err:
+            read_raw(path)  # the specific one-line reason (empty, truncated, not an image), when it has one
             raise _fail(
                 path, f"unreadable image ({err.__class__.__name__})", "replace it with a valid PNG/JPEG"
             ) from None

@@ -1,0 +1,660 @@
+"""Bad inputs and faults, one row per class: the exact outcome, and every input byte-identical after.
+
+Each case builds its inputs under ``tmp`` (copies of the toy scene; nothing shared is modified)
+and returns the action plus the paths that must not change (files, or folders compared by their
+whole tree). Outcomes: ``Raises`` (exception type + message substring, one line), ``Exits`` (a
+console script's exit status + one-line message) or ``Ok`` (a check of the result).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Dict, List, Optional, Tuple
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from naka_gs_plugin.data import safe_io
+from naka_gs_plugin.data.images import ImageReadError, read_rgb
+from naka_gs_plugin.data.lowlight_datamanager import LowLightDatamanagerConfig
+from naka_gs_plugin.data.lowlight_dataparser import LowLightDataError, LowLightDataParserConfig, downscaled_copy
+from naka_gs_plugin.data.safe_io import MARKER, UnsafeOutputError, atomic_write
+from naka_gs_plugin.enhance import cli as enhance_cli
+from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
+from naka_gs_plugin.process_data import ProcessData, ProcessDataError
+from naka_gs_plugin.sim import cli as sim_cli
+from tests.test_sim import write_spec
+
+NAKA = EnhanceConfig(correction="none")
+Action = Callable[[], object]
+
+
+@dataclass
+class Raises:
+    exc: type
+    message: str
+
+
+@dataclass
+class Exits:
+    code: int
+    message: str
+
+
+@dataclass
+class Ok:
+    check: Callable[["Env", object], None]
+
+
+@dataclass
+class Env:
+    tmp: Path
+    toy: Path
+    monkeypatch: pytest.MonkeyPatch
+    capsys: pytest.CaptureFixture
+
+    def scene(self, name: str = "S") -> Path:
+        """A private copy of the toy scene (PNG captures)."""
+        return Path(shutil.copytree(self.toy, self.tmp / name))
+
+    def jpeg_scene(self, name: str = "S") -> Path:
+        """The toy scene with its training captures as JPEGs (``train/*.jpg``)."""
+        scene = self.scene(name)
+        path = scene / "transforms_train.json"
+        meta = json.loads(path.read_text())
+        for frame in meta["frames"]:
+            png = scene / frame["file_path"]
+            cv2.imwrite(str(png.with_suffix(".jpg")), cv2.imread(str(png)), [cv2.IMWRITE_JPEG_QUALITY, 95])
+            png.unlink()
+            frame["file_path"] = str(Path(frame["file_path"]).with_suffix(".jpg"))
+        path.write_text(json.dumps(meta))
+        return scene
+
+    def log(self) -> str:
+        return " ".join(self.capsys.readouterr().out.split())
+
+
+def first_train_image(scene: Path) -> Path:
+    return scene / json.loads((scene / "transforms_train.json").read_text())["frames"][0]["file_path"]
+
+
+def truncate(path: Path, fraction: float = 1 / 3) -> Path:
+    """Keep the first ``fraction`` of the file; of a JPEG, its headers and that fraction of the scan
+    (the case OpenCV decodes "successfully", padding the rest with grey)."""
+    data = path.read_bytes()
+    start = data.find(b"\xff\xda") if data[:2] == b"\xff\xd8" else 0
+    path.write_bytes(data[: start + int((len(data) - start) * fraction)])
+    return path
+
+
+def test_truncated_jpeg_is_the_silent_case_for_opencv(tmp_path, toy_scene):
+    """The premise of the truncated-JPEG rows: OpenCV alone returns a full-size, partly grey image."""
+    env = Env(tmp_path, toy_scene, pytest.MonkeyPatch(), None)
+    path = truncate(first_train_image(env.jpeg_scene()))
+    assert cv2.imread(str(path)).shape == (48, 64, 3)
+
+
+def edit_frame0(scene: Path, **values) -> Path:
+    """Set keys of the first training frame (``transform_matrix`` included) in transforms_train.json."""
+    path = scene / "transforms_train.json"
+    meta = json.loads(path.read_text())
+    meta["frames"][0].update(values)
+    path.write_text(json.dumps(meta))
+    return path
+
+
+def pose0(scene: Path) -> np.ndarray:
+    return np.array(json.loads((scene / "transforms_train.json").read_text())["frames"][0]["transform_matrix"])
+
+
+def parse(scene: Path, factor: int = 1, cache: Optional[Path] = None) -> Action:
+    return lambda: LowLightDataParserConfig(data=scene, downscale_factor=factor, cache_dir=cache).setup().get_dataparser_outputs("train")
+
+
+def datamanager(scene: Path, dtype: str = "float32") -> Action:
+    cfg = LowLightDatamanagerConfig(
+        dataparser=LowLightDataParserConfig(data=scene, downscale_factor=1), enhance=NAKA, cache_images_type=dtype
+    )
+    return lambda: cfg.setup(device="cpu", test_mode="val").cached_train  # loaded on first use
+
+
+def captures(env: Env) -> Path:
+    """``P/night1`` (3 photos), ``P/night2`` (another capture) and ``P/notes.txt``, as in the issue."""
+    root = env.tmp / "P"
+    for i in range(3):
+        (root / "night1").mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(root / "night1" / f"{i}.png"), np.full((24, 32, 3), 10 * i, np.uint8))
+    (root / "night2").mkdir()
+    (root / "night2" / "0.png").write_bytes((root / "night1" / "0.png").read_bytes())
+    (root / "notes.txt").write_text("my notes")
+    return root
+
+
+def ours(folder: Path, files: Dict[str, str], tool: str = "naka-gs-process-data") -> Path:
+    """A folder as one of our tools leaves it: ``files`` plus the marker listing them."""
+    folder.mkdir(parents=True)
+    for name, text in files.items():
+        (folder / name).write_text(text)
+    safe_io.write_marker(folder, tool)
+    return folder
+
+
+def fake_process(env: Env, fail: bool = False) -> None:
+    """Replace SfM by a stand-in writing one file to the stage (the publishing logic is under test)."""
+
+    def process(self, stage: Path):
+        if fail:
+            raise ProcessDataError(f"{self.data}: only 0 of 3 images registered")
+        (stage / "transforms_train.json").write_text("{}")
+        return {}
+
+    env.monkeypatch.setattr(ProcessData, "_process", process)
+    env.monkeypatch.setattr(ProcessData, "_print", lambda self, report: None)
+
+
+def run_console(env: Env, entrypoint: Callable[[], None], argv: List[str]) -> Action:
+    def action():
+        env.monkeypatch.setattr(sys, "argv", argv)
+        entrypoint()
+
+    return action
+
+
+# --- the table -------------------------------------------------------------------------------------
+
+
+def pd_out_parent_of_input(env):
+    p = captures(env)
+    return lambda: ProcessData(data=p / "night1", output_dir=p, overwrite=True).main(), [p]
+
+
+def pd_out_equal_input(env):
+    p = captures(env)
+    return lambda: ProcessData(data=p / "night1", output_dir=p / "night1", overwrite=True).main(), [p]
+
+
+def pd_out_inside_input(env):
+    p = captures(env)
+    return lambda: ProcessData(data=p / "night1", output_dir=p / "night1" / "scene").main(), [p]
+
+
+def pd_overwrite_foreign_folder(env):
+    p = captures(env)
+    return lambda: ProcessData(data=p / "night1", output_dir=p / "night2", overwrite=True).main(), [p]
+
+
+def pd_existing_without_overwrite(env):
+    p = captures(env)
+    return lambda: ProcessData(data=p / "night1", output_dir=p / "night2").main(), [p]
+
+
+def pd_overwrite_ours_holding_a_user_file(env):
+    p = captures(env)
+    old = ours(env.tmp / "scene", {"transforms_train.json": "old"})
+    (old / "notes.txt").write_text("added by the user")
+    return lambda: ProcessData(data=p / "night1", output_dir=old, overwrite=True).main(), [p, old]
+
+
+def pd_output_is_a_file(env):
+    p = captures(env)
+    return lambda: ProcessData(data=p / "night1", output_dir=p / "notes.txt", overwrite=True).main(), [p]
+
+
+def pd_overwrite_ours_replaces_it(env):
+    p = captures(env)
+    fake_process(env)
+    old = ours(env.tmp / "scene", {"transforms_train.json": "old", "stale.txt": "old"})
+    return lambda: ProcessData(data=p / "night1", output_dir=old, overwrite=True).main(), [p]
+
+
+def _replaced(env, _):
+    scene = env.tmp / "scene"
+    assert sorted(q.name for q in scene.iterdir()) == [MARKER, "transforms_train.json"]  # stale.txt gone
+    assert (scene / "transforms_train.json").read_text() == "{}"
+    assert sorted(q.name for q in env.tmp.iterdir()) == ["P", "scene"]  # no staging or old copy left
+
+
+def pd_failed_run_keeps_old_output(env):
+    p = captures(env)
+    fake_process(env, fail=True)
+    old = ours(env.tmp / "scene", {"transforms_train.json": "old"})
+    return lambda: ProcessData(data=p / "night1", output_dir=old, overwrite=True).main(), [p, old, env.tmp]
+
+
+def pd_console_exit(env):
+    from naka_gs_plugin.process_data import entrypoint
+
+    p = captures(env)
+    argv = ["naka-gs-process-data", "--data", str(p / "night1"), "--output-dir", str(p), "--overwrite"]
+    return run_console(env, entrypoint, argv), [p]
+
+
+def enh_out_is_the_images_folder(env):
+    s = env.scene()
+    return lambda: enhance_cli.EnhanceCLI(scene=s, out=s / "train", enhance=NAKA).main(), [s]
+
+
+def enh_out_is_the_scene(env):
+    s = env.scene()
+    return lambda: enhance_cli.EnhanceCLI(scene=s, out=s, enhance=NAKA).main(), [s]
+
+
+def enh_out_inside_the_images_folder(env):
+    s = env.scene()
+    return lambda: enhance_cli.EnhanceCLI(scene=s, out=s / "train" / "enh", enhance=NAKA).main(), [s]
+
+
+def enh_out_foreign_nonempty(env):
+    s, other = env.scene(), env.tmp / "mine"
+    other.mkdir()
+    (other / "0000.png").write_bytes(b"user's picture")
+    return lambda: enhance_cli.EnhanceCLI(scene=s, out=other, enhance=NAKA).main(), [s, other]
+
+
+def enh_rerun_replaces_own_output(env):
+    s, out = env.scene(), env.tmp / "enh"
+
+    def action():
+        enhance_cli.EnhanceCLI(scene=s, out=out, enhance=NAKA, sheet=False).main()
+        return enhance_cli.EnhanceCLI(scene=s, out=out, enhance=NAKA, sheet=False).main()
+
+    return action, [s]
+
+
+def _enhanced_written(env, written):
+    out = env.tmp / "enh"
+    assert sorted(q.name for q in out.iterdir()) == sorted([MARKER] + [q.name for q in written])
+    assert len(written) == 8 and all(cv2.imread(str(q)).shape == (48, 64, 3) for q in written)
+    assert sorted(q.name for q in env.tmp.iterdir()) == ["S", "enh", "naka-cache"]
+
+
+def enh_truncated_jpeg_console(env):
+    s = env.jpeg_scene()
+    truncate(first_train_image(s))
+    argv = ["naka-gs-enhance", str(s), "--out", str(env.tmp / "enh"), "--enhance.correction", "none"]
+    return run_console(env, enhance_cli.entrypoint, argv), [s]
+
+
+def img_truncated_jpeg(env):
+    s = env.jpeg_scene()
+    truncate(first_train_image(s))
+    return lambda: read_rgb(first_train_image(s)), [s]
+
+
+def img_zero_size(env):
+    s = env.scene()
+    first_train_image(s).write_bytes(b"")
+    return lambda: read_rgb(first_train_image(s)), [s]
+
+
+def img_not_an_image(env):
+    s = env.scene()
+    first_train_image(s).write_text("this is not a picture")
+    return lambda: read_rgb(first_train_image(s)), [s]
+
+
+def img_truncated_png(env):
+    s = env.scene()
+    truncate(first_train_image(s))
+    return lambda: read_rgb(first_train_image(s)), [s]
+
+
+def dm_truncated_jpeg_float32(env):
+    s = env.jpeg_scene()
+    truncate(first_train_image(s))
+    return datamanager(s), [s]
+
+
+def dm_truncated_jpeg_uint8(env):
+    s = env.jpeg_scene()
+    truncate(first_train_image(s))
+    return datamanager(s, "uint8"), [s]
+
+
+def dp_downscale_truncated_jpeg(env):
+    s = env.jpeg_scene()
+    truncate(first_train_image(s))
+    return parse(s, factor=2), [s]
+
+
+def cam_focal_1e10(env):
+    s = env.scene()
+    edit_frame0(s, fl_x=1e10, fl_y=1e10)
+    return parse(s), [s]
+
+
+def cam_focal_zero(env):
+    s = env.scene()
+    edit_frame0(s, fl_x=0)
+    return parse(s), [s]
+
+
+def cam_focal_nan(env):
+    s = env.scene()
+    edit_frame0(s, fl_x=float("nan"))
+    return parse(s), [s]
+
+
+def cam_focal_string(env):
+    s = env.scene()
+    edit_frame0(s, fl_x="abc")
+    return parse(s), [s]
+
+
+def cam_width_zero(env):
+    s = env.scene()
+    edit_frame0(s, w=0)
+    return parse(s), [s]
+
+
+def cam_distortion_string(env):
+    s = env.scene()
+    edit_frame0(s, k1="x")
+    return parse(s), [s]
+
+
+def cam_zero_rotation(env):
+    s = env.scene()
+    pose = pose0(s)
+    pose[:3, :3] = 0.0
+    edit_frame0(s, transform_matrix=pose.tolist())
+    return parse(s), [s]
+
+
+def cam_scaled_rotation(env):
+    s = env.scene()
+    pose = pose0(s)
+    pose[:3, :3] *= 2.0
+    edit_frame0(s, transform_matrix=pose.tolist())
+    return parse(s), [s]
+
+
+def cam_reflection(env):
+    s = env.scene()
+    pose = pose0(s)
+    pose[:3, 0] *= -1.0
+    edit_frame0(s, transform_matrix=pose.tolist())
+    return parse(s), [s]
+
+
+def cam_infinite_translation(env):
+    s = env.scene()
+    pose = pose0(s)
+    pose[0, 3] = float("inf")
+    edit_frame0(s, transform_matrix=pose.tolist())
+    return parse(s), [s]
+
+
+def cache_nested_writes_use_unique_temporaries(env):
+    """Two writers of one cache entry at once (as two ns-train runs): neither clobbers the other's temp file."""
+    target = env.tmp / "cache" / "entry.npy"
+    target.parent.mkdir()
+
+    def outer(tmp):
+        atomic_write(target, lambda inner: np.save(inner, np.ones(3)))  # the other run, mid-way through ours
+        np.save(tmp, np.zeros(3))
+
+    def action():
+        atomic_write(target, outer)
+        return np.load(target)
+
+    return action, []
+
+
+def _last_writer_wins(env, arr):
+    assert np.array_equal(arr, np.zeros(3)) and os.listdir(env.tmp / "cache") == ["entry.npy"]
+
+
+def cache_imwrite_fails(env):
+    s = env.scene()
+    env.monkeypatch.setattr(cv2, "imwrite", lambda *a, **k: False)  # what cv2 does on a full disk
+    return parse(s, factor=2, cache=env.tmp / "c"), [s]
+
+
+def _nothing_committed(env, _):
+    assert not [q for q in (env.tmp / "c").rglob("*") if q.is_file()]
+
+
+def cache_corrupt_downscaled_copy(env):
+    s, cache = env.scene(), env.tmp / "c"
+    src = first_train_image(s)
+    good = downscaled_copy(src, 2, cache).read_bytes()
+    truncate(downscaled_copy(src, 2, cache))
+    return lambda: (downscaled_copy(src, 2, cache).read_bytes() == good), [s]
+
+
+def _recomputed_with_warning(env, same):
+    assert same is True and "is corrupt; making it again" in env.log()
+
+
+def cache_corrupt_enhanced_entry(env):
+    s = env.scene()
+    images = [torch.from_numpy(read_rgb(first_train_image(s)))]
+    enhancer = Enhancer(NAKA)
+    first = enhancer.enhance_images(images)[0]
+    entry = next(enhancer.cache_dir.glob("*.npy"))
+    truncate(entry)
+
+    def action():
+        again = Enhancer(NAKA)
+        return again, torch.equal(again.enhance_images(images)[0], first)
+
+    return action, [s]
+
+
+def _enhanced_recomputed(env, result):
+    enhancer, same = result
+    assert same and enhancer.last_run["computed"] == 1 and "is corrupt; recomputing it" in env.log()
+
+
+def cache_env_names_a_file(env):
+    s = env.scene()
+    blocker = env.tmp / "not-a-dir"
+    blocker.write_text("a file")
+    env.monkeypatch.setenv("NAKA_GS_CACHE", str(blocker))
+    env.monkeypatch.setattr(safe_io, "_fallback", {})
+
+    def action():
+        parse(s, factor=2)()
+        return Enhancer(NAKA).enhance_images([torch.zeros(4, 4, 3)])
+
+    return action, [s, blocker]
+
+
+def _fell_back_once(env, _):
+    log = env.log()
+    assert log.count("is not writable") == 1 and "using" in log
+
+
+def cache_unwritable_dir(env):
+    """An unwritable cache (/proc refuses new entries even to root, unlike a chmod-ed folder)."""
+    s = env.scene()
+    env.monkeypatch.setenv("NAKA_GS_CACHE", "/proc/naka-gs-cache")
+    env.monkeypatch.setattr(safe_io, "_fallback", {})
+    return lambda: Enhancer(NAKA).enhance_images([torch.zeros(4, 4, 3)]), [s]
+
+
+def cache_off_touches_no_cache(env):
+    blocker = env.tmp / "not-a-dir"
+    blocker.write_text("a file")
+    env.monkeypatch.setenv("NAKA_GS_CACHE", str(blocker))
+    env.monkeypatch.setattr(safe_io, "_fallback", {})
+    enhancer = Enhancer(EnhanceConfig(correction="none", use_cache=False))
+    return lambda: (enhancer, enhancer.enhance_images([torch.zeros(4, 4, 3)])), [blocker]
+
+
+def _no_cache_used(env, result):
+    enhancer, _ = result
+    assert enhancer.cache_dir is None and "not writable" not in env.log()
+    assert sorted(q.name for q in env.tmp.iterdir()) == ["not-a-dir"]
+
+
+def cache_disk_full_on_write(env):
+    def full(*_a, **_k):
+        raise OSError(28, "No space left on device")
+
+    env.monkeypatch.setattr(np, "save", full)
+    images = [torch.zeros(4, 4, 3), torch.ones(4, 4, 3)]
+    return lambda: Enhancer(NAKA).enhance_images(images), []
+
+
+def _warned_once_and_went_on(env, out):
+    log = env.log()
+    assert len(out) == 2 and log.count("not caching enhanced images") == 1
+    assert not [q for q in (env.tmp / "naka-cache").rglob("*") if q.is_file()]
+
+
+def sim_out_existing_scene(env):
+    s = env.scene()
+    spec = write_spec(env.tmp, [])
+    argv = ["naka-gs-sim", str(spec), "--out", str(s)]
+    return run_console(env, sim_cli.entrypoint, argv), [s, spec]
+
+
+def sim_out_contains_spec(env):
+    folder = env.tmp / "specs"
+    folder.mkdir()
+    spec = write_spec(folder, [])
+    return lambda: sim_cli.main(sim_cli.SimArgs(spec=spec, out=folder)), [folder]
+
+
+def sim_rerun_replaces_own_scene(env):
+    spec, out = write_spec(env.tmp, []), env.tmp / "scene"
+
+    def action():
+        sim_cli.main(sim_cli.SimArgs(spec=spec, out=out))
+        (out / "sparse").mkdir()  # e.g. a COLMAP model that naka-gs-sim did not write
+        (out / "sparse" / "cameras.bin").write_bytes(b"x")
+        sim_cli.main(sim_cli.SimArgs(spec=spec, out=out))
+
+    return action, [spec]
+
+
+def sim_rerun_replaces_own_scene_cleanly(env):
+    spec, out = write_spec(env.tmp, []), env.tmp / "scene"
+
+    def action():
+        sim_cli.main(sim_cli.SimArgs(spec=spec, out=out))
+        (out / "train" / "stale.png").write_bytes((out / "train_gt" / "0000.png").read_bytes())
+        safe_io.write_marker(out, "naka-gs-sim")  # a file of an earlier (bigger) scene of ours
+        return sim_cli.main(sim_cli.SimArgs(spec=spec, out=out))
+
+    return action, [spec]
+
+
+def _fresh_scene(env, out):
+    assert not (out / "train" / "stale.png").exists() and (out / "transforms_train.json").is_file()
+    assert "train/stale.png" not in safe_io.written_files(out)
+    assert sorted(q.name for q in env.tmp.iterdir()) == ["s.yaml", "scene"]  # no staging or old copy left
+
+
+def raster_absurd_focal_and_nan_means(env):
+    from naka_gs_plugin.model.rasterize_cpu_fast import rasterization
+    from tests.test_rasterize_cpu_fast import make_scene
+
+    scene = make_scene(200, 64, 48)
+    scene["Ks"][:, 0, 0] = scene["Ks"][:, 1, 1] = 1e10
+    scene["means"][5] = float("nan")
+
+    def action():
+        means = scene["means"].clone().requires_grad_()
+        colors, alphas, _ = rasterization(**{**scene, "means": means})
+        (colors.sum() + alphas.sum()).backward()
+        return colors, alphas
+
+    return action, []
+
+
+def _finite_render(env, out):
+    colors, alphas = out
+    assert torch.isfinite(colors).all() and torch.isfinite(alphas).all()
+
+
+CASES: List[Tuple[Callable[[Env], Tuple[Action, List[Path]]], object]] = [
+    (pd_out_parent_of_input, Raises(ProcessDataError, "--output-dir")),
+    (pd_out_equal_input, Raises(ProcessDataError, "is the input")),
+    (pd_out_inside_input, Raises(ProcessDataError, "is inside the input")),
+    (pd_overwrite_foreign_folder, Raises(ProcessDataError, "not written by naka-gs (no .naka-gs-output marker)")),
+    (pd_existing_without_overwrite, Raises(ProcessDataError, "already exists and is not empty")),
+    (pd_overwrite_ours_holding_a_user_file, Raises(ProcessDataError, "holds notes.txt, which naka-gs did not write")),
+    (pd_output_is_a_file, Raises(ProcessDataError, "exists and is not a folder")),
+    (pd_overwrite_ours_replaces_it, Ok(_replaced)),
+    (pd_failed_run_keeps_old_output, Raises(ProcessDataError, "only 0 of 3 images registered")),
+    (pd_console_exit, Exits(1, "contains the input")),
+    (enh_out_is_the_images_folder, Raises(UnsafeOutputError, "--out")),
+    (enh_out_is_the_scene, Raises(UnsafeOutputError, "contains the input")),
+    (enh_out_inside_the_images_folder, Raises(UnsafeOutputError, "is inside the input")),
+    (enh_out_foreign_nonempty, Raises(UnsafeOutputError, "not written by naka-gs")),
+    (enh_rerun_replaces_own_output, Ok(_enhanced_written)),
+    (enh_truncated_jpeg_console, Exits(2, "truncated or corrupt JPEG")),
+    (img_truncated_jpeg, Raises(ImageReadError, "truncated or corrupt JPEG (image file is truncated")),
+    (img_zero_size, Raises(ImageReadError, "empty file (0 bytes)")),
+    (img_not_an_image, Raises(ImageReadError, "unreadable image (truncated, corrupt or not a PNG/JPEG/TIFF)")),
+    (img_truncated_png, Raises(ImageReadError, "unreadable image")),
+    (dm_truncated_jpeg_float32, Raises(ImageReadError, "truncated or corrupt JPEG")),
+    (dm_truncated_jpeg_uint8, Raises(ImageReadError, "truncated or corrupt JPEG")),
+    (dp_downscale_truncated_jpeg, Raises(ImageReadError, "truncated or corrupt JPEG")),
+    (cam_focal_1e10, Raises(LowLightDataError, "px is over 100.0x the image size -- give focal lengths in pixels")),
+    (cam_focal_zero, Raises(LowLightDataError, "focal length fl_x, fl_y = 0.0")),
+    (cam_focal_nan, Raises(LowLightDataError, "are not all finite")),
+    (cam_focal_string, Raises(LowLightDataError, "'fl_x' is 'abc', not a number")),
+    (cam_width_zero, Raises(LowLightDataError, "image size w x h = 0.0")),
+    (cam_distortion_string, Raises(LowLightDataError, "'k1' is 'x', not a number")),
+    (cam_zero_rotation, Raises(LowLightDataError, "frame 0 'transform_matrix' rotation block is not a rotation")),
+    (cam_scaled_rotation, Raises(LowLightDataError, "rotation block is not a rotation (|R^T R - I| = 3")),
+    (cam_reflection, Raises(LowLightDataError, "det -1")),
+    (cam_infinite_translation, Raises(LowLightDataError, "frame 0 'transform_matrix' is not a finite 4x4")),
+    (cache_nested_writes_use_unique_temporaries, Ok(_last_writer_wins)),
+    (cache_imwrite_fails, Raises(LowLightDataError, "cannot write the downscaled copy")),
+    (cache_corrupt_downscaled_copy, Ok(_recomputed_with_warning)),
+    (cache_corrupt_enhanced_entry, Ok(_enhanced_recomputed)),
+    (cache_env_names_a_file, Ok(_fell_back_once)),
+    (cache_unwritable_dir, Ok(_fell_back_once)),
+    (cache_off_touches_no_cache, Ok(_no_cache_used)),
+    (cache_disk_full_on_write, Ok(_warned_once_and_went_on)),
+    (sim_out_existing_scene, Exits(2, "not written by naka-gs")),
+    (sim_out_contains_spec, Raises(UnsafeOutputError, "contains the input")),
+    (sim_rerun_replaces_own_scene, Raises(UnsafeOutputError, "holds sparse/cameras.bin, which naka-gs did not write")),
+    (sim_rerun_replaces_own_scene_cleanly, Ok(_fresh_scene)),
+    (raster_absurd_focal_and_nan_means, Ok(_finite_render)),
+]
+
+
+def snapshot(paths: List[Path]) -> Dict[str, Optional[bytes]]:
+    """Every file under ``paths`` (and each folder's listing) by path: bytes, or None for a folder."""
+    state: Dict[str, Optional[bytes]] = {}
+    for root in paths:
+        items = [root] + (sorted(root.rglob("*")) if root.is_dir() else [])
+        for item in items:
+            state[str(item)] = None if item.is_dir() else item.read_bytes()
+    return state
+
+
+@pytest.mark.parametrize("make, expect", CASES, ids=[make.__name__ for make, _ in CASES])
+def test_bad_input(make, expect, toy_scene, tmp_path, monkeypatch, capsys):
+    env = Env(tmp_path, toy_scene, monkeypatch, capsys)
+    action, protected = make(env)
+    before = snapshot(protected)
+    env.capsys.readouterr()
+    if isinstance(expect, Raises):
+        with pytest.raises(expect.exc) as err:
+            action()
+        message = str(err.value)
+        assert expect.message in message and "\n" not in message, message
+    elif isinstance(expect, Exits):
+        with pytest.raises(SystemExit) as err:
+            action()
+        code = err.value.code
+        printed = code if isinstance(code, str) else env.capsys.readouterr().out.strip()
+        assert (1 if isinstance(code, str) else code) == expect.code
+        assert expect.message in printed and "\n" not in printed, printed
+    else:
+        expect.check(env, action())
+    assert snapshot(protected) == before
