@@ -115,7 +115,8 @@ def pose0(scene: Path) -> np.ndarray:
 
 
 def parse(scene: Path, factor: int = 1, cache: Optional[Path] = None) -> Action:
-    return lambda: LowLightDataParserConfig(data=scene, downscale_factor=factor, cache_dir=cache).setup().get_dataparser_outputs("train")
+    config = LowLightDataParserConfig(data=scene, downscale_factor=factor, cache_dir=cache)
+    return lambda: config.setup().get_dataparser_outputs("train")
 
 
 def datamanager(scene: Path, dtype: str = "float32") -> Action:
