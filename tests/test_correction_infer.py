@@ -228,7 +228,7 @@ def test_missing_weights_fail_clearly(tmp_path, monkeypatch):
 
 
 def test_unknown_mode_rejected():
-    assert set(typing.get_args(ModeName)) == set(MODES)
+    assert set(typing.get_args(ModeName)) == set(MODES) | {"auto"}
     with pytest.raises(ValueError, match="unknown correction mode"):
         CorrectionRunner(_net(), "turbo")
     with pytest.raises(ValueError, match="multiples of 8"):

@@ -240,7 +240,9 @@ class InferenceMode:
     map_scale: float = 1.0
     """Predict the maps on the image resized by this factor (area filter), then upsample them bilinearly."""
     bf16: bool = False
-    """Run the network under CPU bfloat16 autocast (maps and the final composition stay float32)."""
+    """bfloat16 arithmetic for the network's body: CPU autocast, or with ``lean`` a bfloat16 copy of the
+    body (maps and the final composition stay float32). Fast only on CPUs with native bfloat16
+    (AVX-512 BF16, AMX): elsewhere oneDNN emulates it, about 5x slower than float32."""
     channels_last: bool = False
     """NHWC memory layout for the network (faster oneDNN convolutions on CPU)."""
     tile: int = 0
@@ -253,18 +255,21 @@ class InferenceMode:
     stats_scale: float = 1.0
     """Tiled only: resolution factor of the pass that records the global statistics (1 = exact)."""
     lean: bool = False
-    """Inference-only forward (:func:`lean_predict_maps`) with the network body's weights and activations
-    in bfloat16 (GroupNorm and GELU too: no float32 round trips as under autocast), in-place GELU,
-    residual and SE ops, each activation freed after its last use and kept in the heap for reuse
-    during the call (:func:`reuse_freed_memory`); the heads and maps stay float32. Implies
-    channels-last; not combined with tiles (they replay statistics through the module forwards)."""
+    """Inference-only forward (:func:`lean_predict_maps`): each activation freed after its last use and
+    kept in the heap for reuse during the call (:func:`reuse_freed_memory`), GroupNorm + residual +
+    GELU fused in one pass (:mod:`naka_gs_plugin.enhance.lean_ops`), in-place SE ops, the decoders'
+    concatenations never built. With ``bf16`` the body's weights and activations are bfloat16 (no
+    float32 round trips as under autocast); without, float32. The heads and maps stay float32.
+    Implies channels-last; not combined with tiles (they replay statistics through the module forwards)."""
 
 
 ModeName = Literal[
+    "auto",
     "exact",
     "channels-last",
     "bf16",
     "lean",
+    "lean-f32",
     "tiled",
     "tiled-lowmem",
     "0.8-bf16",
@@ -277,7 +282,8 @@ MODES: Dict[str, InferenceMode] = {
     "exact": InferenceMode(),
     "channels-last": InferenceMode(channels_last=True),
     "bf16": InferenceMode(bf16=True, channels_last=True),
-    "lean": InferenceMode(lean=True, channels_last=True),
+    "lean": InferenceMode(lean=True, bf16=True, channels_last=True),
+    "lean-f32": InferenceMode(lean=True, channels_last=True),
     "tiled": InferenceMode(tile=512, stats_scale=1.0),
     "tiled-lowmem": InferenceMode(tile=512, stats_scale=0.7),
     "0.8-bf16": InferenceMode(map_scale=0.8, bf16=True, channels_last=True),
@@ -286,11 +292,42 @@ MODES: Dict[str, InferenceMode] = {
     "half-bf16": InferenceMode(map_scale=0.5, bf16=True, channels_last=True),
     "quarter-bf16": InferenceMode(map_scale=0.25, bf16=True, channels_last=True),
 }
-DEFAULT_MODE: ModeName = "lean"
-"""The datamanager's default, from ``naka-gs-bench-correction`` with the shipped weights: within
-0.01 dB / 0.0002 SSIM of ``exact`` on LOM test + LOL eval15, about 4x less CPU time and 40% of its
-peak memory at 1764x1172 (README). Every reduced-resolution mode loses more than 0.002 SSIM with
-these weights: the maps carry detail that even an ideal downsample-upsample of the exact maps loses."""
+DEFAULT_MODE: ModeName = "auto"
+"""The datamanager's default: :func:`resolve_mode` picks ``lean`` where the CPU has native bfloat16,
+else ``lean-f32``. Measured with ``naka-gs-bench-correction`` and the shipped weights (docs/): each is
+the fastest mode on its kind of CPU that stays within 0.05 dB / 0.002 SSIM of ``exact`` on LOM test +
+LOL eval15. Every reduced-resolution mode loses more than 0.002 SSIM with these weights: the maps
+carry detail that even an ideal downsample-upsample of the exact maps loses."""
+
+
+def native_bf16() -> Tuple[bool, str]:
+    """Whether bfloat16 convolutions run natively here, and why: the CPU has AVX-512 BF16 or AMX, and
+    neither oneDNN nor ATen is capped below it (``ONEDNN_MAX_CPU_ISA``, ``ATEN_CPU_CAPABILITY``)."""
+    if not (torch.cpu._is_avx512_bf16_supported() or torch.cpu._is_amx_tile_supported()):
+        return False, "this CPU has neither AVX-512 BF16 nor AMX"
+    if not torch.ops.mkldnn._is_mkldnn_bf16_supported():
+        return False, "oneDNN has no bfloat16 kernels here (ONEDNN_MAX_CPU_ISA caps it)"
+    capability = torch.backends.cpu.get_cpu_capability()
+    if not capability.startswith("AVX512"):
+        return False, f"PyTorch's kernels run at {capability} (ATEN_CPU_CAPABILITY caps them)"
+    return True, "this CPU has native bfloat16 (AVX-512 BF16 or AMX)"
+
+
+_RESOLVED: Dict[str, str] = {}
+
+
+def resolve_mode(name: str) -> str:
+    """A concrete :data:`MODES` name: ``auto`` becomes ``lean`` with native bfloat16, else ``lean-f32``
+    (logged once per process with the reason); any other known name is returned as is."""
+    if name != "auto":
+        if name not in MODES:
+            raise ValueError(f"unknown correction mode {name!r}; choose auto or one of {sorted(MODES)}")
+        return name
+    if "auto" not in _RESOLVED:
+        native, why = native_bf16()
+        _RESOLVED["auto"] = "lean" if native else "lean-f32"
+        print(f"[naka-gs] correction mode auto -> {_RESOLVED['auto']}: {why}", flush=True)
+    return _RESOLVED["auto"]
 
 
 @dataclass
@@ -587,9 +624,7 @@ class CorrectionRunner:
 
     def __init__(self, net: ChromaGuided, mode: Union[str, InferenceMode] = DEFAULT_MODE) -> None:
         if isinstance(mode, str):
-            if mode not in MODES:
-                raise ValueError(f"unknown correction mode {mode!r}; choose one of {sorted(MODES)}")
-            mode = MODES[mode]
+            mode = MODES[resolve_mode(mode)]
         if mode.tile and mode.halo is None:
             halo = -(-(receptive_radius(net.config) + mode.blend) // STRIDE) * STRIDE - mode.blend
             mode = dataclasses.replace(mode, halo=halo)
@@ -597,14 +632,14 @@ class CorrectionRunner:
             raise ValueError(
                 f"tile ({mode.tile}) and halo + blend ({mode.halo + mode.blend}) must be multiples of {STRIDE}"
             )
-        if mode.lean and (mode.tile or mode.bf16):
-            raise ValueError("a lean mode runs untiled and without autocast: set tile=0 and bf16=False")
+        if mode.lean and mode.tile:
+            raise ValueError("a lean mode runs untiled: set tile=0")
         self.mode = mode
         self.net = net.eval()
         if mode.channels_last or mode.lean:
             # A private copy: the caller's network keeps its layout and dtype.
             self.net = copy.deepcopy(net).eval().to(memory_format=torch.channels_last)
-        if mode.lean:
+        if mode.lean and mode.bf16:
             self.net.to(torch.bfloat16)
             self.net.mul_head.float()
             self.net.add_head.float()
@@ -616,7 +651,7 @@ class CorrectionRunner:
     def _autocast(self) -> Iterator[None]:
         """bfloat16 autocast for the body of the network; the two 3x3 heads stay float32, since a
         bfloat16 map (8 mantissa bits) would quantise M_mul near 1 in steps of 0.008."""
-        if not self.mode.bf16:
+        if not self.mode.bf16 or self.mode.lean:
             yield
             return
         heads = (self.net.mul_head, self.net.add_head)

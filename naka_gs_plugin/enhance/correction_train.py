@@ -39,13 +39,13 @@ import tyro
 import yaml
 from jaxtyping import Float
 from nerfstudio.utils.rich_utils import CONSOLE
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from torch import Tensor
 
 from naka_gs_plugin.enhance.correction import MODES, CorrectionRunner, load_correction, save_correction
 from naka_gs_plugin.enhance.correction_loss import CorrectionLoss
 from naka_gs_plugin.enhance.correction_net import ChromaGuided, ChromaGuidedConfig
 from naka_gs_plugin.enhance.naka import naka_enhance
+from naka_gs_plugin.progress import StageProgress
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 
@@ -213,7 +213,7 @@ class PairSet:
         self.pairs = list(pairs)
         self.low: List[np.ndarray] = []
         self.high: List[np.ndarray] = []
-        with _progress() as progress:
+        with StageProgress() as progress:
             task = progress.add_task(description, total=len(self.pairs))
             for p in self.pairs:
                 low, high = read_image(p.low), read_image(p.high)
@@ -317,18 +317,6 @@ def config_from_yaml(path: Path) -> TrainConfig:
             v = tuple(v)
         values[k] = v
     return TrainConfig(config=path, **values)
-
-
-def _progress() -> Progress:
-    return Progress(
-        TextColumn("[progress.description]{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        TimeRemainingColumn(),
-        console=CONSOLE,
-        transient=False,
-    )
 
 
 def optimizer_step(net: torch.nn.Module, opt: torch.optim.Optimizer, loss: torch.Tensor, grad_clip: float) -> bool:
@@ -446,7 +434,7 @@ def train(config: TrainConfig) -> Dict[str, list]:
         gen = torch.Generator().manual_seed(int(rng.integers(2**62)))
         order = torch.multinomial(weights, per_epoch, replacement=per_epoch > len(train_set), generator=gen).tolist()
         sums: Dict[str, float] = {}
-        with _progress() as progress:
+        with StageProgress() as progress:
             task = progress.add_task(f"epoch {epoch}/{config.epochs}", total=iters)
             for it in range(iters):
                 idx = order[it * config.batch_size : (it + 1) * config.batch_size]

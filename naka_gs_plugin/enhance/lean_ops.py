@@ -1,25 +1,34 @@
-"""Fused bfloat16 GroupNorm (+ residual) + GELU for the correction network's lean inference (CPU).
+"""Fused GroupNorm (+ residual) + GELU for the correction network's lean inference (CPU).
 
 In the lean forward (:func:`naka_gs_plugin.enhance.correction.lean_predict_maps`) every conv unit
 is ``conv -> GroupNorm -> GELU`` (a residual block's second unit: ``-> + input -> GELU``) on
-bfloat16 activations of up to 32 x 1172 x 1764. PyTorch runs GroupNorm (two passes), the add and
-the erf-GELU (evaluated in float32, slower than the float32 op itself) as separate kernels: about
-45% of the lean forward's time went there on this 2-core CPU. Here one pass gathers the group
-statistics and one pass applies them, adds the residual and takes GELU from a 65,536-entry table:
-a bfloat16 input has only that many values, and the table holds PyTorch's own float32 erf-GELU of
-each, rounded to bfloat16 -- exactly what ``F.gelu`` returns on that value. Every intermediate is
-rounded to bfloat16 where PyTorch's sequence of ops rounds it; the one difference is the
-normalisation, ``x * a_c + b_c`` with ``a_c = gamma_c / sqrt(var_g + eps)`` and
-``b_c = beta_c - mean_g * a_c``, which can round the last bit the other way (tested against
-:func:`group_norm_gelu_reference`).
+activations of up to 32 x 1172 x 1764. PyTorch runs GroupNorm (two passes), the add and the
+erf-GELU as separate kernels, each a full pass over memory: about 45% of the bfloat16 lean
+forward's time and 20% of the float32 one's went there on a 2-core CPU. Here one pass gathers the
+group statistics and one pass applies them, adds the residual and takes GELU. Both activation
+dtypes share the kernels (numba compiles one specialisation each):
 
-Kernels are numba (``cache=True``), parallel over pixels of channels-last tensors, reading and
-writing bfloat16 through its 16-bit pattern (numba has no bfloat16 type).
+- **bfloat16** (CPUs with native bf16): GELU is read from a 65,536-entry table, since a bfloat16
+  input has only that many values; the table holds the correctly rounded erf-GELU of each
+  (:func:`gelu_table`, computed in float64, so it does not depend on which vectorised kernel this
+  CPU's PyTorch takes). Every intermediate is rounded to bfloat16 where PyTorch's sequence of ops
+  rounds it.
+- **float32** (every other CPU): GELU is evaluated in-line by :func:`_gelu_f32` (erfc to 1.2e-7
+  relative error, vectorisable: no libm call), within 2.5e-7 of the exact value, as PyTorch's own
+  float32 kernel is.
+
+In both, the normalisation is ``x * a_c + b_c`` with ``a_c = gamma_c / sqrt(var_g + eps)`` and
+``b_c = beta_c - mean_g * a_c`` (PyTorch: ``(x - mean) * rstd * gamma + beta``), which can round the
+last bit the other way (tested against :func:`group_norm_gelu_reference`).
+
+Kernels are numba (``cache=True``), parallel over pixels of channels-last tensors; bfloat16 is read
+and written through its 16-bit pattern (numba has no bfloat16 type).
 """
 
 from __future__ import annotations
 
 import functools
+import math
 from typing import Optional
 
 import numba
@@ -29,7 +38,7 @@ import torch.nn.functional as F
 from jaxtyping import Float
 from llvmlite import ir
 from numba import njit, prange, types
-from numba.extending import intrinsic
+from numba.extending import intrinsic, overload
 from torch import Tensor
 
 _CHUNK = 4096
@@ -71,9 +80,113 @@ def _f32_to_bf16(v):
     return np.uint16(u >> np.uint32(16))
 
 
+def _load(v):
+    """An element as float32: a bfloat16 pattern (uint16) is widened, float32 is itself."""
+
+
+@overload(_load, inline="always")
+def _load_impl(v):
+    if isinstance(v, types.Integer):
+        return lambda v: _bf16_to_f32(v)
+    return lambda v: np.float32(v)
+
+
+def _round(v, like):
+    """``v`` (float32) rounded to the storage of ``like``'s elements: a bfloat16 pattern, or float32."""
+
+
+@overload(_round, inline="always")
+def _round_impl(v, like):
+    if isinstance(like.dtype, types.Integer):
+        return lambda v, like: _f32_to_bf16(v)
+    return lambda v, like: v
+
+
+def _widen(h, like):
+    """A value stored as ``like``'s elements, as float32 (identity for float32)."""
+
+
+@overload(_widen, inline="always")
+def _widen_impl(h, like):
+    if isinstance(like.dtype, types.Integer):
+        return lambda h, like: _bf16_to_f32(h)
+    return lambda h, like: h
+
+
+@njit(cache=True, inline="always")
+def _exp_f32(a):
+    """``exp(a)`` for float32 ``a`` in [-87, 0]: ``a = k ln2 + r``, ``|r| <= ln2 / 2``, a degree-6
+    Taylor polynomial of ``exp(r)`` (error < 2e-7 relative) times ``2**k`` built from exponent bits.
+    Written out because numba calls libm's ``expf`` one element at a time (25x slower than this)."""
+    k = np.float32(np.floor(a * np.float32(1.4426950408889634) + np.float32(0.5)))
+    r = a - k * np.float32(0.693145751953125) - k * np.float32(1.428606765330187e-06)  # ln2 in two parts
+    p = np.float32(1.0) + r * (
+        np.float32(1.0)
+        + r
+        * (
+            np.float32(0.5)
+            + r
+            * (
+                np.float32(1.0 / 6.0)
+                + r * (np.float32(1.0 / 24.0) + r * (np.float32(1.0 / 120.0) + r * np.float32(1.0 / 720.0)))
+            )
+        )
+    )
+    return p * _bits_to_f32(np.uint32(np.int32(k) + np.int32(127)) << np.uint32(23))
+
+
+@njit(cache=True, inline="always")
+def _gelu_f32(x):
+    """Exact (erf) GELU of a float32, ``x * Phi(x)``, through ``erfc`` (Numerical Recipes' Chebyshev
+    fit, relative error < 1.2e-7): ``Phi(x) = erfc(-x / sqrt 2) / 2``, written so that the negative
+    tail keeps its relative accuracy (``0.5 * (1 + erf)`` cancels there)."""
+    z = min(abs(x) * np.float32(0.7071067811865476), np.float32(9.0))
+    t = np.float32(1.0) / (np.float32(1.0) + np.float32(0.5) * z)
+    poly = np.float32(-1.26551223) + t * (
+        np.float32(1.00002368)
+        + t
+        * (
+            np.float32(0.37409196)
+            + t
+            * (
+                np.float32(0.09678418)
+                + t
+                * (
+                    np.float32(-0.18628806)
+                    + t
+                    * (
+                        np.float32(0.27886807)
+                        + t
+                        * (
+                            np.float32(-1.13520398)
+                            + t * (np.float32(1.48851587) + t * (np.float32(-0.82215223) + t * np.float32(0.17087277)))
+                        )
+                    )
+                )
+            )
+        )
+    )
+    tail = x * (np.float32(0.5) * t * _exp_f32(poly - z * z))  # x * erfc(|x| / sqrt 2) / 2
+    if z >= np.float32(9.0):  # |GELU(x)| < 1e-36 for x < -12.7 (and huge |x| must not scale the clamp's)
+        tail = np.float32(0.0)
+    return tail if x < 0 else x - tail
+
+
+def _act(h, table):
+    """GELU of a stored value: table look-up for a bfloat16 pattern, :func:`_gelu_f32` for float32."""
+
+
+@overload(_act, inline="always")
+def _act_impl(h, table):
+    if isinstance(h, types.Integer):
+        return lambda h, table: table[h]
+    return lambda h, table: _gelu_f32(h)
+
+
 @njit(parallel=True, cache=True)
 def _group_moments(x, groups):
-    """Per-group mean and population variance of a ``[pixels, channels]`` bfloat16 pattern array.
+    """Per-group mean and population variance of a ``[pixels, channels]`` array of bfloat16 patterns
+    (uint16) or float32.
 
     Sums of ``x - x[0]`` per channel (the shift keeps float32 sums of squares free of cancellation
     when a channel's mean dwarfs its spread), in float32 over a chunk of pixels (contiguous channels:
@@ -82,7 +195,7 @@ def _group_moments(x, groups):
     per = n_ch // groups
     ref = np.empty(n_ch, np.float32)
     for c in range(n_ch):
-        ref[c] = _bf16_to_f32(x[0, c])
+        ref[c] = _load(x[0, c])
     n_chunks = (n_pix + _CHUNK - 1) // _CHUNK
     partial = np.zeros((n_chunks, 2, n_ch))
     for k in prange(n_chunks):
@@ -90,7 +203,7 @@ def _group_moments(x, groups):
         q = np.zeros(n_ch, np.float32)
         for p in range(k * _CHUNK, min(n_pix, (k + 1) * _CHUNK)):
             for c in range(n_ch):
-                d = _bf16_to_f32(x[p, c]) - ref[c]
+                d = _load(x[p, c]) - ref[c]
                 s[c] += d
                 q[c] += d * d
         partial[k, 0] = s
@@ -106,40 +219,49 @@ def _group_moments(x, groups):
     return mean, np.maximum(second - mean * mean, 0.0)
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, fastmath={"contract"})
 def _apply(x, scale, shift, residual, table, act, out):
-    """``out = gelu(bf16(bf16(x * scale + shift) + residual))`` per pixel row (residual optional)."""
+    """``out = gelu(r(r(x * scale + shift) + residual))`` per pixel row (residual optional), ``r``
+    rounding to the storage dtype (bfloat16 patterns, or float32: no rounding)."""
     n_pix, n_ch = x.shape
     has_res = residual.shape[0] == n_pix
     for p in prange(n_pix):
         for c in range(n_ch):
-            h = _f32_to_bf16(_bf16_to_f32(x[p, c]) * scale[c] + shift[c])
+            h = _round(_load(x[p, c]) * scale[c] + shift[c], x)
             if has_res:
-                h = _f32_to_bf16(_bf16_to_f32(h) + _bf16_to_f32(residual[p, c]))
-            out[p, c] = table[h] if act else h
+                h = _round(_widen(h, x) + _load(residual[p, c]), x)
+            out[p, c] = _act(h, table) if act else h
 
 
 _GELU_TABLE: Optional[np.ndarray] = None
 
 
 def gelu_table() -> np.ndarray:
-    """uint16[65536]: the bfloat16 pattern of ``F.gelu`` (erf form) of every bfloat16 pattern."""
+    """uint16[65536]: for every bfloat16 pattern, the pattern of its erf-GELU ``x * erfc(-x / sqrt 2) / 2``
+    evaluated in float64 and rounded to bfloat16 (through float32; subnormal results kept).
+
+    PyTorch's own bfloat16 ``F.gelu`` agrees with it to one bfloat16 step, with differences that
+    depend on the vectorised kernel the CPU takes (AVX2 vs AVX-512), hence this fixed definition."""
     global _GELU_TABLE
     if _GELU_TABLE is None:
-        every = torch.arange(1 << 16, dtype=torch.int32).to(torch.int16).view(torch.bfloat16)
-        _GELU_TABLE = F.gelu(every.float()).to(torch.bfloat16).view(torch.int16).numpy().view(np.uint16)
+        every = torch.arange(1 << 16, dtype=torch.int32).to(torch.int16).view(torch.bfloat16).double()
+        gelu = every * torch.special.erfc(-every * math.sqrt(0.5)) * 0.5
+        _GELU_TABLE = gelu.float().to(torch.bfloat16).view(torch.int16).numpy().view(np.uint16)
     return _GELU_TABLE
 
 
 def _patterns(x: Tensor) -> np.ndarray:
-    """``[pixels, C]`` uint16 view of a channels-last ``[1, C, H, W]`` bfloat16 tensor (no copy)."""
-    return x.permute(0, 2, 3, 1).view(torch.int16).numpy().reshape(-1, x.shape[1]).view(np.uint16)
+    """``[pixels, C]`` view of a channels-last ``[1, C, H, W]`` tensor (no copy): float32 as is,
+    bfloat16 as its uint16 bit patterns."""
+    if x.dtype == torch.bfloat16:
+        return x.permute(0, 2, 3, 1).view(torch.int16).numpy().reshape(-1, x.shape[1]).view(np.uint16)
+    return x.permute(0, 2, 3, 1).numpy().reshape(-1, x.shape[1])
 
 
 def supported(x: Tensor) -> bool:
-    """Whether :func:`group_norm_gelu` takes ``x``: one bfloat16 channels-last CPU image."""
+    """Whether :func:`group_norm_gelu` takes ``x``: one bfloat16 or float32 channels-last CPU image."""
     return (
-        x.dtype == torch.bfloat16
+        x.dtype in (torch.bfloat16, torch.float32)
         and x.device.type == "cpu"
         and x.ndim == 4
         and x.shape[0] == 1
@@ -163,6 +285,10 @@ def _threads_as_torch(fn):
     return functools.wraps(fn)(wrapped)
 
 
+def _fits(x: Tensor, residual: Optional[Tensor]) -> bool:
+    return supported(x) and (residual is None or (residual.shape == x.shape and residual.dtype == x.dtype and supported(residual)))
+
+
 @_threads_as_torch
 def group_norm_gelu(
     x: Float[Tensor, "1 C H W"],
@@ -171,13 +297,15 @@ def group_norm_gelu(
     act: bool = True,
     inplace: bool = False,
 ) -> Float[Tensor, "1 C H W"]:
-    """``gelu(group_norm(x) + residual)`` (GELU if ``act``, residual if given) in bfloat16, fused.
+    """``gelu(group_norm(x) + residual)`` (GELU if ``act``, residual if given), fused, in ``x``'s dtype.
 
-    ``x`` and ``residual``: bfloat16, channels-last (see :func:`supported`); ``norm``'s affine
-    parameters may be float32 or bfloat16. Returns a new channels-last bfloat16 tensor, or ``x``
-    overwritten if ``inplace`` (each element is read before it is written, by the same thread)."""
-    if not supported(x) or (residual is not None and (not supported(residual) or residual.shape != x.shape)):
-        raise ValueError("group_norm_gelu needs bfloat16 channels-last [1, C, H, W] CPU tensors of one shape")
+    ``x`` and ``residual``: bfloat16 or float32 (the same), channels-last (see :func:`supported`);
+    ``norm``'s affine parameters may be float32 or bfloat16. Returns a new channels-last tensor, or
+    ``x`` overwritten if ``inplace`` (each element is read before it is written, by the same thread)."""
+    if not _fits(x, residual):
+        raise ValueError(
+            "group_norm_gelu needs bfloat16 or float32 channels-last [1, C, H, W] CPU tensors of one shape and dtype"
+        )
     src = _patterns(x)
     mean, var = _group_moments(src, norm.num_groups)
     per = x.shape[1] // norm.num_groups
@@ -187,7 +315,7 @@ def group_norm_gelu(
     scale = (weight * rstd).float()
     shift = (bias - mean_c * weight * rstd).float()
     out = x if inplace else torch.empty_like(x, memory_format=torch.channels_last)
-    res = _patterns(residual) if residual is not None else np.empty((0, 0), np.uint16)
+    res = _patterns(residual) if residual is not None else src[:0]
     _apply(src, scale.numpy(), shift.numpy(), res, gelu_table(), act, _patterns(out))
     return out
 
@@ -200,7 +328,7 @@ def norm_act(
 ) -> Float[Tensor, "1 C H W"]:
     """:func:`group_norm_gelu` in place of ``x`` where it applies (:func:`supported`), else the PyTorch
     reference; either way ``x`` (a fresh convolution output) must not be used afterwards."""
-    if supported(x) and (residual is None or (supported(residual) and residual.shape == x.shape)):
+    if _fits(x, residual):
         return group_norm_gelu(x, norm, residual, act, inplace=True)
     return group_norm_gelu_reference(x, norm, residual, act)
 

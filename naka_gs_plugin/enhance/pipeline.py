@@ -24,7 +24,6 @@ import torch
 from jaxtyping import Float, UInt8
 from nerfstudio.configs.base_config import InstantiateConfig
 from nerfstudio.utils.rich_utils import CONSOLE
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from torch import Tensor
 
 from naka_gs_plugin.data.safe_io import atomic_write, usable_cache_dir
@@ -35,8 +34,10 @@ from naka_gs_plugin.enhance.correction import (
     ModeName,
     file_digest,
     load_correction,
+    resolve_mode,
 )
 from naka_gs_plugin.enhance.naka import linear_stretch, naka_rushton, stretch_stats
+from naka_gs_plugin.progress import StageProgress
 
 CACHE_VERSION = 1
 """Bump when the enhancement maths change, so stale cache entries are never read."""
@@ -71,8 +72,9 @@ class EnhanceConfig(InstantiateConfig):
     """Correction network applied after Naka (method ``naka`` only): ``none``, ``default`` (the weights
     shipped in ``naka_gs_plugin/enhance/weights/``) or the path of a checkpoint (ours or the authors')."""
     correction_mode: ModeName = DEFAULT_MODE
-    """Correction inference mode (see ``naka_gs_plugin.enhance.correction.MODES``; ``exact`` = plain
-    float32 full-resolution forward)."""
+    """Correction inference mode (``naka_gs_plugin.enhance.correction.MODES``): ``auto`` picks the fastest
+    one that keeps the quality bar on this CPU (``lean`` with native bfloat16, else ``lean-f32``);
+    ``exact`` is the plain float32 full-resolution forward."""
 
     def correction_path(self) -> Optional[Path]:
         """The checkpoint file of ``correction``, or ``None`` for ``none``."""
@@ -114,6 +116,8 @@ class Enhancer:
         self.last_run = {"computed": 0, "cached": 0, "seconds": 0.0}
         """Counts of the last :meth:`enhance_images` call: images computed vs read from cache."""
         self.correction_path = config.correction_path() if config.method == "naka" else None
+        self.correction_mode = resolve_mode(config.correction_mode)
+        """The concrete inference mode (``auto`` resolved for this CPU): part of the cache key."""
         self.correction_key: Optional[dict] = None
         """The correction's part of the cache key: weights file hash and inference mode."""
         if self.correction_path is not None:
@@ -127,13 +131,13 @@ class Enhancer:
                     f"[naka-gs] correction weights {self.correction_path} not found ({hint}): pass "
                     "--pipeline.datamanager.enhance.correction none (Naka only) or the path of a checkpoint"
                 )
-            self.correction_key = {"weights_sha1": file_digest(self.correction_path), "mode": config.correction_mode}
+            self.correction_key = {"weights_sha1": file_digest(self.correction_path), "mode": self.correction_mode}
         self._runner: Optional[CorrectionRunner] = None
 
     def runner(self) -> Optional[CorrectionRunner]:
         """The correction network (loaded on first use), or ``None`` without correction."""
         if self._runner is None and self.correction_path is not None:
-            self._runner = CorrectionRunner(load_correction(self.correction_path), self.config.correction_mode)
+            self._runner = CorrectionRunner(load_correction(self.correction_path), self.correction_mode)
         return self._runner
 
     def _keys(self, images: Sequence[Tensor]) -> List[str]:
@@ -196,8 +200,8 @@ class Enhancer:
                 # The pooled statistics need every view, cached or not.
                 lo_scene, hi_scene = self._scene_stats(images)
             runner = self.runner()
-            correction = f", correction {self.config.correction} ({self.config.correction_mode})" if runner else ""
-            with _progress() as progress:
+            correction = f", correction {self.config.correction} ({self.correction_mode})" if runner else ""
+            with StageProgress() as progress:
                 task = progress.add_task(
                     f"{description} ({self.config.method}, {self.config.stats} stats{correction})", total=len(todo)
                 )
@@ -240,14 +244,3 @@ class Enhancer:
             *(stretch_stats(naka_rushton(to_float01(im), self.config.sigma, self.config.n)) for im in images)
         )
         return torch.stack(los).amin(), torch.stack(his).amax()
-
-
-def _progress() -> Progress:
-    return Progress(
-        TextColumn("[progress.description]{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        console=CONSOLE,
-        transient=False,
-    )
