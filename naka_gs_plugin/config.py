@@ -18,6 +18,7 @@ from nerfstudio.plugins.types import MethodSpecification
 from naka_gs_plugin.data.lowlight_datamanager import LowLightDatamanagerConfig
 from naka_gs_plugin.model.naka_gs_model import NakaGSModelConfig
 from naka_gs_plugin.pipeline import NakaGSPipelineConfig
+from naka_gs_plugin.trainer import NakaGSTrainer
 
 CUDA = torch.cuda.is_available()
 MAX_STEPS = 30000 if CUDA else 3000
@@ -46,6 +47,8 @@ def _adam(lr: float, final: float | None = None, warmup: int = 0) -> dict:
 
 naka_gs_method = MethodSpecification(
     config=TrainerConfig(
+        # Atomic checkpoints, Ctrl-C saves the current step, resume skips corrupt checkpoints.
+        _target=NakaGSTrainer,
         method_name="naka-gs",
         steps_per_eval_image=100,
         steps_per_eval_batch=0,
