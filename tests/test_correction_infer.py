@@ -20,7 +20,7 @@ from naka_gs_plugin.enhance.correction import (
 )
 from naka_gs_plugin.enhance.correction_net import ChromaGuided, ChromaGuidedConfig
 from naka_gs_plugin.enhance.naka import naka_enhance
-from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
+from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer, scene_sigma
 
 SMALL = ChromaGuidedConfig(widths=(8, 8, 8, 8), enc_residual=(0, 0, 0))
 """Narrow and shallow: fast, yet the full U-Net topology (receptive radius 108 px)."""
@@ -215,6 +215,24 @@ def test_enhancer_applies_the_correction_and_keys_the_cache(tmp_path):
     assert again.last_run["computed"] == 0  # same weights and mode: cached
     save_correction(_net(SMALL, seed=5), ckpt)  # new weights in the same file
     assert keys(correction=str(ckpt), correction_mode="exact") != base
+
+
+def test_sigma_auto_is_the_scene_mean_and_its_key_covers_every_view():
+    images = _images(n=3)
+    mean = float(torch.cat([im.double().flatten() / 255 for im in images]).mean())
+    assert abs(scene_sigma(images) - mean) < 1e-7 and scene_sigma([torch.zeros(4, 4, 3)]) == 1e-3
+    out = Enhancer(EnhanceConfig(sigma="auto", correction="none", use_cache=False)).enhance_images(images)
+    low = images[1].float() / 255
+    assert (out[1] - naka_enhance(low, sigma=mean)).abs().max() < 1e-4  # the 16-bit rounding
+    assert (out[1] - naka_enhance(low, sigma=0.05)).abs().max() > 1e-2
+
+    def keys(imgs, sigma):
+        return Enhancer(EnhanceConfig(sigma=sigma, correction="none"))._keys(imgs)
+
+    brighter = [images[0], images[1], images[2] + 10]
+    assert keys(images, "auto")[0] != keys(brighter, "auto")[0]  # view 0's sigma depends on view 2
+    assert keys(images, 0.05)[0] == keys(brighter, 0.05)[0]
+    assert keys(images, "auto") != keys(images, 0.05)
 
 
 def test_missing_weights_fail_clearly(tmp_path, monkeypatch):

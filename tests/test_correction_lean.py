@@ -227,9 +227,9 @@ def test_reuse_freed_memory_restores_glibc_defaults(monkeypatch):
     monkeypatch.setattr(correction, "_glibc", lambda: FakeLibc())
     with pytest.raises(RuntimeError):
         with correction.reuse_freed_memory():
-            assert calls == [("mallopt", -4, 0), ("mallopt", -1, 1 << 30)]
+            assert calls == [("mallopt", -3, 192 << 20), ("mallopt", -1, 1 << 30)]
             raise RuntimeError("the forward failed")
-    assert calls[2:] == [("mallopt", -1, 128 * 1024), ("mallopt", -4, 65536), ("trim", 0)]
+    assert calls[2:] == [("mallopt", -1, 128 * 1024), ("mallopt", -3, 128 * 1024), ("trim", 0)]
 
 
 def test_fused_kernels_keep_pytorch_thread_count():

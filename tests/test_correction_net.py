@@ -30,6 +30,7 @@ from naka_gs_plugin.enhance.correction_train import (
     config_from_yaml,
     export_weights,
     lol_pairs,
+    load_sources,
     lom_pairs,
     sim_pairs,
     train,
@@ -281,6 +282,23 @@ def test_lom_and_sim_pair_discovery(tmp_path, toy_scene):
         lom_pairs(scene, "train")
     sims = sim_pairs(toy_scene)
     assert len(sims) == 8 and all(p.high.parent.name == "train_gt" and p.low.stem == p.high.stem for p in sims)
+
+
+def test_hold_out_leaves_a_scene_out_of_training_and_validation(tmp_path):
+    scenes = []
+    for name in ("sofa", "bike"):
+        scene = tmp_path / name
+        for d in ("low", "high"):
+            (scene / d).mkdir(parents=True)
+            for n in ("1.JPG", "2.JPG"):
+                cv2.imwrite(str(scene / d / n), np.full((8, 8, 3), 40, np.uint8))
+        (scene / "transforms_train.json").write_text(json.dumps({"frames": [{"file_path": "low/2.JPG"}]}))
+        (scene / "transforms_test.json").write_text(json.dumps({"frames": [{"file_path": "high/1.JPG"}]}))
+        scenes.append(scene)
+    train, val, _ = load_sources(TrainConfig(lom=tuple(scenes), hold_out=("sofa",), min_edge_correlation=-1.0))
+    assert {p.low.parent.parent.name for p in train.pairs + val.pairs} == {"bike"}
+    with pytest.raises(ValueError, match=r"--hold-out chair names no --lom/--sim scene"):
+        load_sources(TrainConfig(lom=tuple(scenes), hold_out=("chair",)))
 
 
 def test_recipe_yaml_loads_and_unknown_keys_fail(tmp_path):

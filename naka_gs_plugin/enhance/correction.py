@@ -255,11 +255,12 @@ class InferenceMode:
     stats_scale: float = 1.0
     """Tiled only: resolution factor of the pass that records the global statistics (1 = exact)."""
     lean: bool = False
-    """Inference-only forward (:func:`lean_predict_maps`): each activation freed after its last use and
-    kept in the heap for reuse during the call (:func:`reuse_freed_memory`), GroupNorm + residual +
-    GELU fused in one pass (:mod:`naka_gs_plugin.enhance.lean_ops`), in-place SE ops, the decoders'
-    concatenations never built. With ``bf16`` the body's weights and activations are bfloat16 (no
-    float32 round trips as under autocast); without, float32. The heads and maps stay float32.
+    """Inference-only forward (:func:`lean_predict_maps`): each activation freed after its last use,
+    GroupNorm + residual + GELU fused in one pass (:mod:`naka_gs_plugin.enhance.lean_ops`), in-place
+    SE ops, the decoders' concatenations and full upsampled inputs never built. With ``bf16`` the
+    body's weights and activations are bfloat16 (no float32 round trips as under autocast) and freed
+    blocks stay in the heap for reuse during the call (:func:`reuse_freed_memory`); without, float32.
+    The heads and maps stay float32.
     Implies channels-last; not combined with tiles (they replay statistics through the module forwards)."""
 
 
@@ -530,15 +531,20 @@ def lean_predict_maps(
     for dec in (net.dec3, net.dec2, net.dec1):
         # conv(cat([up, skip])) as conv(skip, W_skip) + conv(up, W_up): the concatenation (3x a skip's
         # size at full resolution) is never built, and each operand is dropped right after its conv.
+        # The upsampled input (2x the skip's channels at the skip's resolution) is built and convolved
+        # in groups of the skip's channel count, so it never exists whole either.
         skip = skips.pop()
         conv_in = dec.stage.conv_in
         w_up, w_skip = conv_in.conv.weight.split([x.shape[1], skip.shape[1]], dim=1)
         y = F.conv2d(skip, w_skip, padding=1)
-        size = skip.shape[-2:]
+        size, group = skip.shape[-2:], skip.shape[1]
         del skip
-        x = F.conv2d(F.interpolate(x, size=size, mode="bilinear", align_corners=False), w_up, padding=1).add_(y)
+        for c in range(0, x.shape[1], group):
+            up = F.interpolate(x[:, c : c + group], size=size, mode="bilinear", align_corners=False)
+            y.add_(F.conv2d(up, w_up[:, c : c + group], padding=1))
+            del up
+        x = norm_act(y, conv_in.norm, act=True)
         del y
-        x = norm_act(x, conv_in.norm, act=True)
         for step in list(_stage_steps(dec.stage))[1:]:
             x = step(x)
     x = _unit(net.fuse[0], x)
@@ -560,26 +566,32 @@ def _glibc():
         return None
 
 
-_M_TRIM_THRESHOLD, _M_MMAP_MAX = -1, -4
-_GLIBC_DEFAULTS = {_M_TRIM_THRESHOLD: 128 * 1024, _M_MMAP_MAX: 65536}
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
+_GLIBC_DEFAULTS = {_M_TRIM_THRESHOLD: 128 * 1024, _M_MMAP_THRESHOLD: 128 * 1024}
+HEAP_BLOCK_LIMIT = 192 << 20
+"""Largest block :func:`reuse_freed_memory` keeps in the heap: a full-resolution (1764x1172)
+32-channel bfloat16 activation is 132 MB. (The float32 lean forward does not use it: heap
+fragmentation between its 265 MB blocks took its peak RSS at full resolution from 1.9 to 2.7 GB,
+for 10-20% in speed.)"""
 
 
 @contextlib.contextmanager
 def reuse_freed_memory() -> Iterator[None]:
-    """Within the block, serve large allocations from the process heap and keep freed ones there.
+    """Within the block, serve large allocations (up to :data:`HEAP_BLOCK_LIMIT`) from the process heap
+    and keep freed ones there.
 
-    glibc maps every block above 32 MiB (a full-resolution activation is ~130 MiB in bfloat16) with
-    ``mmap`` and unmaps it on free, so each new activation page-faults its memory back in, zeroed by
-    the kernel: measured on this 2-core CPU, ``x + x`` on a 32x1172x1764 bfloat16 tensor took 50 ms
-    against 6 ms in place. PyTorch has no caching CPU allocator to switch on, and ``THP_MEM_ALLOC_ENABLE``
-    is read once when torch is imported, so the lean forward disables ``mmap`` for the call
-    (``M_MMAP_MAX = 0``, ``M_TRIM_THRESHOLD`` high) and restores glibc's defaults afterwards, handing
-    the unused heap back with ``malloc_trim``. A no-op where the C library is not glibc."""
+    glibc maps every block above 32 MiB with ``mmap`` and unmaps it on free, so each new activation
+    page-faults its memory back in, zeroed by the kernel: measured on a 2-core CPU, ``x + x`` on a
+    32x1172x1764 bfloat16 tensor took 50 ms against 6 ms in place. PyTorch has no caching CPU
+    allocator to switch on, and ``THP_MEM_ALLOC_ENABLE`` is read once when torch is imported, so the
+    lean forward raises ``M_MMAP_THRESHOLD`` (and ``M_TRIM_THRESHOLD``) for the call and restores
+    glibc's defaults afterwards, handing the unused heap back with ``malloc_trim``. A no-op where the
+    C library is not glibc."""
     libc = _glibc()
     if libc is None:
         yield
         return
-    libc.mallopt(_M_MMAP_MAX, 0)
+    libc.mallopt(_M_MMAP_THRESHOLD, HEAP_BLOCK_LIMIT)
     libc.mallopt(_M_TRIM_THRESHOLD, 1 << 30)
     try:
         yield
@@ -692,7 +704,7 @@ class CorrectionRunner:
     def predict_maps(self, low: Tensor, naka: Tensor) -> Tuple[Tensor, Tensor]:
         """``(mul, add)`` float32 at the resolution of ``low``/``naka`` (whole image or tiles)."""
         if self.mode.lean:
-            with reuse_freed_memory():
+            with reuse_freed_memory() if self.mode.bf16 else contextlib.nullcontext():
                 mul, add = lean_predict_maps(self.net, low, naka)
             return mul.contiguous(), add.contiguous()
         if not self.mode.tile or (low.shape[-2] <= self.mode.tile and low.shape[-1] <= self.mode.tile):

@@ -69,6 +69,9 @@ class TrainConfig:
     """lowlight-data scenes with low/ + high/: transforms_train.json frames train, transforms_test.json validate."""
     sim: Tuple[Path, ...] = ()
     """Simulator scenes: train/<n> + train_gt/<n>.png (training only)."""
+    hold_out: Tuple[str, ...] = ()
+    """Folder names of ``--lom``/``--sim`` scenes to leave out entirely, training and validation (the
+    leave-one-scene-out weights of the real-scene protocol: ``--hold-out sofa``). Each must name one."""
     lol_weight: float = 1.0
     """Relative sampling weight of each LOL pair (1 for every source = uniform over all pairs)."""
     lom_weight: float = 1.0
@@ -344,14 +347,20 @@ def load_sources(config: TrainConfig) -> Tuple[PairSet, PairSet, List[Tuple[str,
     """Training and validation pairs (misaligned training pairs dropped) and the dropped list."""
     train: List[Pair] = []
     val: List[Pair] = []
+    scenes = [Path(s).name for s in config.lom + config.sim]
+    unknown = sorted(set(config.hold_out) - set(scenes))
+    if unknown:
+        raise ValueError(f"--hold-out {' '.join(unknown)} names no --lom/--sim scene; choose among {scenes}")
     for root in config.lol:
         train += lol_pairs(root, "train")
         val += lol_pairs(root, "eval")
     for scene in config.lom:
-        train += lom_pairs(scene, "train")
-        val += lom_pairs(scene, "test")
+        if Path(scene).name not in config.hold_out:
+            train += lom_pairs(scene, "train")
+            val += lom_pairs(scene, "test")
     for scene in config.sim:
-        train += sim_pairs(scene)
+        if Path(scene).name not in config.hold_out:
+            train += sim_pairs(scene)
     if not train:
         raise ValueError("no training pairs: pass at least one of --lol, --lom, --sim")
     if not val:

@@ -17,7 +17,7 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import List, Literal, Optional, Sequence, Type
+from typing import List, Literal, Optional, Sequence, Type, Union
 
 import numpy as np
 import torch
@@ -58,8 +58,11 @@ class EnhanceConfig(InstantiateConfig):
     _target: Type = field(default_factory=lambda: Enhancer)
     method: Literal["naka", "none"] = "naka"
     """``naka``: Naka-Rushton response + min-max stretch; ``none``: train on the raw images (baseline)."""
-    sigma: float = 0.05
-    """Naka-Rushton semi-saturation constant, in [0, 1] image units (reference: 0.05)."""
+    sigma: Union[float, Literal["auto"]] = 0.05
+    """Naka-Rushton semi-saturation constant, in [0, 1] sRGB image units (reference: 0.05), or ``auto``:
+    the mean sRGB value of the scene's training views (all pixels and channels), so that the scene's
+    mean maps to half the response, as the retina's adaptation does -- LOM and LOL captures average
+    about 0.05 (the reference value), RealX3D's about 0.02."""
     n: float = 1.0
     """Naka-Rushton exponent (reference: 1)."""
     stats: Literal["image", "scene"] = "image"
@@ -83,8 +86,21 @@ class EnhanceConfig(InstantiateConfig):
         return DEFAULT_WEIGHTS if self.correction == "default" else Path(self.correction)
 
     def params(self) -> dict:
-        """Everything that changes the output (the cache key's parameter part)."""
+        """Everything that changes the output (the cache key's parameter part; with ``sigma auto`` the
+        key's image part covers every view, as the value depends on all of them)."""
         return {"version": CACHE_VERSION, "method": self.method, "sigma": self.sigma, "n": self.n, "stats": self.stats}
+
+
+SIGMA_FLOOR = 1e-3
+"""Lower bound of ``sigma auto`` (an all-black scene must not divide by zero)."""
+
+
+def scene_sigma(images: Sequence[Tensor]) -> float:
+    """``sigma auto``: the mean sRGB [0, 1] value over every pixel and channel of ``images`` (views may
+    differ in size; each pixel weighs the same), at least :data:`SIGMA_FLOOR`."""
+    total = sum(float(to_float01(im).sum(dtype=torch.float64)) for im in images)
+    count = sum(to_float01(im).numel() for im in images)
+    return max(SIGMA_FLOOR, total / max(count, 1))
 
 
 def content_hash(image: Tensor) -> str:
@@ -144,7 +160,7 @@ class Enhancer:
         hashes = [content_hash(im) for im in images]
         params = json.dumps({**self.config.params(), "correction": self.correction_key}, sort_keys=True)
         scene = ""
-        if self.config.stats == "scene":
+        if self.config.stats == "scene" or self.config.sigma == "auto":
             # Each view's output depends on every view: the key covers the whole set.
             scene = hashlib.sha1("".join(sorted(hashes)).encode()).hexdigest()
         return [hashlib.sha1(f"{params}|{h}|{scene}".encode()).hexdigest() for h in hashes]
@@ -196,19 +212,21 @@ class Enhancer:
         naka_s = correction_s = 0.0
         if todo:
             lo_scene = hi_scene = None
+            sigma = scene_sigma(images) if self.config.sigma == "auto" else self.config.sigma
             if self.config.stats == "scene":
                 # The pooled statistics need every view, cached or not.
-                lo_scene, hi_scene = self._scene_stats(images)
+                lo_scene, hi_scene = self._scene_stats(images, sigma)
             runner = self.runner()
             correction = f", correction {self.config.correction} ({self.correction_mode})" if runner else ""
             with StageProgress() as progress:
                 task = progress.add_task(
-                    f"{description} ({self.config.method}, {self.config.stats} stats{correction})", total=len(todo)
+                    f"{description} ({self.config.method}, sigma {sigma:.4g}, {self.config.stats} stats{correction})",
+                    total=len(todo),
                 )
                 for i in todo:
                     t = time.perf_counter()
                     low = to_float01(images[i])
-                    response = naka_rushton(low, self.config.sigma, self.config.n)
+                    response = naka_rushton(low, sigma, self.config.n)
                     lo, hi = stretch_stats(response)
                     if lo_scene is not None:
                         lo, hi = lo_scene, hi_scene
@@ -238,9 +256,7 @@ class Enhancer:
         )
         return [o for o in out if o is not None]
 
-    def _scene_stats(self, images: Sequence[Tensor]) -> tuple[Tensor, Tensor]:
+    def _scene_stats(self, images: Sequence[Tensor], sigma: float) -> tuple[Tensor, Tensor]:
         """Pooled min/max of the Naka response over all views (views may differ in size)."""
-        los, his = zip(
-            *(stretch_stats(naka_rushton(to_float01(im), self.config.sigma, self.config.n)) for im in images)
-        )
+        los, his = zip(*(stretch_stats(naka_rushton(to_float01(im), sigma, self.config.n)) for im in images))
         return torch.stack(los).amin(), torch.stack(his).amax()
