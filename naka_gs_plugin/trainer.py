@@ -19,7 +19,7 @@ import signal
 import threading
 import zipfile
 from pathlib import Path
-from typing import List, Literal, NoReturn, Optional
+from typing import Literal, NoReturn, Optional
 
 import torch
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
@@ -108,7 +108,8 @@ class NakaGSTrainer(Trainer):
         self._sigint_step = self.step
         self.stop_training = True  # also ends upstream's pause loop; _step_done re-sets it if train() resets it
         CONSOLE.print(
-            f"naka-gs: Ctrl-C: finishing step {self.step}, then saving a checkpoint (Ctrl-C again to quit without)",
+            f"naka-gs: Ctrl-C: finishing step {self.step}, then saving a checkpoint "
+            "(Ctrl-C again: quit without saving)",
             markup=False,
             soft_wrap=True,
         )
@@ -120,7 +121,7 @@ class NakaGSTrainer(Trainer):
 
     def _release_sigint(self) -> None:
         if self._deferring_sigint:
-            signal.signal(signal.SIGINT, self._previous_sigint)
+            signal.signal(signal.SIGINT, self._previous_sigint or signal.SIG_DFL)  # None: a handler set outside Python
             self._deferring_sigint = False
 
     def _after_train(self) -> None:
@@ -208,7 +209,9 @@ class NakaGSTrainer(Trainer):
         if config.load_dir is not None:
             flag, folder, newest = "--load-dir", Path(config.load_dir), config.load_step
             if newest is not None and not (folder / f"step-{newest:09d}.ckpt").is_file():
-                raise SystemExit(f"naka-gs: --load-step {newest}: {folder} has no step-{newest:09d}.ckpt; pick a step it holds")
+                raise SystemExit(
+                    f"naka-gs: --load-step {newest}: {folder} has no step-{newest:09d}.ckpt; pick a step it holds"
+                )
         elif config.load_checkpoint is not None:
             requested = Path(config.load_checkpoint)
             flag, folder, newest = "--load-checkpoint", requested.parent, checkpoint_step(requested)
@@ -227,7 +230,8 @@ class NakaGSTrainer(Trainer):
             )
         if not candidates:
             raise SystemExit(
-                f"naka-gs: {flag} {folder}: no step-*.ckpt checkpoint there; point it at a run's nerfstudio_models folder"
+                f"naka-gs: {flag} {folder}: no step-*.ckpt checkpoint there; "
+                "point it at a run's nerfstudio_models folder"
             )
         for i, path in enumerate(candidates):
             if is_valid_checkpoint(path):

@@ -78,7 +78,7 @@ def interrupted(toy_scene, tmp_path_factory) -> Interrupted:
         deadline = time.monotonic() + 120
         # nerfstudio's step table is first written after step 0 has run.
         while "Step (% Done)" not in log_path.read_text():
-            assert proc.poll() is None, f"ns-train exited (rc={proc.returncode}) before training:\n{log_path.read_text()}"
+            assert proc.poll() is None, f"ns-train exited (rc={proc.returncode}) early:\n{log_path.read_text()}"
             assert time.monotonic() < deadline, f"no training step within 120 s:\n{log_path.read_text()}"
             time.sleep(0.1)
         proc.send_signal(signal.SIGINT)
@@ -87,7 +87,8 @@ def interrupted(toy_scene, tmp_path_factory) -> Interrupted:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
-    return Interrupted(rc, log_path.read_text(), work / "out" / toy_scene.name / "naka-gs" / "run" / "nerfstudio_models")
+    ckpt_dir = work / "out" / toy_scene.name / "naka-gs" / "run" / "nerfstudio_models"
+    return Interrupted(rc, log_path.read_text(), ckpt_dir)
 
 
 def _stub_trainer(tmp_path: Path, **config) -> NakaGSTrainer:
@@ -210,9 +211,8 @@ def test_resume_skips_a_truncated_latest_checkpoint(interrupted, toy_scene, tmp_
         cwd=tmp_path, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, timeout=300,
     )  # fmt: skip
     assert res.returncode == 0, res.stdout[-4000:]
-    assert f"naka-gs: skipping corrupt or truncated {newer.name} in {folder}; resuming from {valid.name}" in _naka_lines(
-        res.stdout
-    ), res.stdout[-4000:]
+    skipped = f"naka-gs: skipping corrupt or truncated {newer.name} in {folder}; resuming from {valid.name}"
+    assert skipped in _naka_lines(res.stdout), res.stdout[-4000:]
     resumed = tmp_path / "out" / toy_scene.name / "naka-gs" / "run" / "nerfstudio_models"
     assert [p.name for p in resumed.glob("step-*.ckpt")] == [f"step-{step + 1:09d}.ckpt"], res.stdout[-4000:]
 
@@ -227,7 +227,7 @@ def test_load_checkpoint_falls_back_past_a_damaged_file(interrupted, tmp_path, c
     trainer = _stub_trainer(tmp_path, load_checkpoint=damaged)
     assert trainer.checkpoint_to_resume() == folder / "step-000000001.ckpt"
     out = " ".join(capsys.readouterr().out.split())
-    assert f"naka-gs: skipping corrupt or truncated {damaged.name} in {folder}; resuming from step-000000001.ckpt" in out
+    assert f"skipping corrupt or truncated {damaged.name} in {folder}; resuming from step-000000001.ckpt" in out
 
 
 def test_no_valid_checkpoint_is_one_line_naming_the_folder_and_the_fix(interrupted, tmp_path):
