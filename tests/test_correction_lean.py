@@ -189,7 +189,7 @@ def test_lean_f32_mode_is_float32_and_equals_exact():
 
 @pytest.mark.parametrize("native", [True, False])
 def test_auto_mode_picks_bfloat16_only_with_native_support(monkeypatch, capsys, native):
-    monkeypatch.setattr(correction, "native_bf16", lambda: (native, "because"))
+    monkeypatch.setattr(correction, "native_bf16", lambda: (native, "because"))  # the name correction uses
     monkeypatch.setattr(correction, "_RESOLVED", {})
     assert correction.resolve_mode("auto") == ("lean" if native else "lean-f32")
     assert correction.resolve_mode("auto") == ("lean" if native else "lean-f32")
@@ -203,13 +203,6 @@ def test_auto_mode_picks_bfloat16_only_with_native_support(monkeypatch, capsys, 
         correction.resolve_mode("fast")
 
 
-def test_native_bf16_needs_the_cpu_and_uncapped_kernels(monkeypatch):
-    monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda: False)
-    monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda: False)
-    assert correction.native_bf16() == (False, "this CPU has neither AVX-512 BF16 nor AMX")
-    monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda: True)
-    monkeypatch.setattr(torch.ops.mkldnn, "_is_mkldnn_bf16_supported", lambda: False)
-    assert "ONEDNN_MAX_CPU_ISA" in correction.native_bf16()[1]
 
 
 def test_reuse_freed_memory_restores_glibc_defaults(monkeypatch):
@@ -230,6 +223,21 @@ def test_reuse_freed_memory_restores_glibc_defaults(monkeypatch):
             assert calls == [("mallopt", -3, 192 << 20), ("mallopt", -1, 1 << 30)]
             raise RuntimeError("the forward failed")
     assert calls[2:] == [("mallopt", -1, 128 * 1024), ("mallopt", -3, 128 * 1024), ("trim", 0)]
+
+
+def test_heap_reuse_only_while_the_largest_activation_is_small(monkeypatch):
+    calls = []
+    real = correction.reuse_freed_memory
+    monkeypatch.setattr(correction, "reuse_freed_memory", lambda limit: calls.append(limit) or real(limit))
+    torch.manual_seed(0)
+    runner = CorrectionRunner(ChromaGuided(MID), "lean-f32")
+    low = torch.rand(1, 3, 20, 30)
+    largest = MID.widths[0] * 20 * 30 * 4  # stem width x H x W float32 bytes
+    monkeypatch.setitem(correction.HEAP_BLOCK_LIMIT, torch.float32, largest)
+    runner(low, low)
+    monkeypatch.setitem(correction.HEAP_BLOCK_LIMIT, torch.float32, largest - 1)
+    runner(low, low)
+    assert calls == [largest]
 
 
 def test_fused_kernels_keep_pytorch_thread_count():

@@ -73,14 +73,14 @@ class EvalConfig:
     weights: Path = DEFAULT_WEIGHTS
     """Correction checkpoint (default: the shipped weights)."""
     modes: Tuple[str, ...] = ("exact",)
-    """Network inference modes to score (see naka_gs_plugin.enhance.correction.MODES)."""
+    """Network inference modes to score (``auto`` or naka_gs_plugin.enhance.correction.MODES)."""
     output: Path = Path("outputs/correction_eval.json")
     """JSON with the per-dataset means and the per-image numbers."""
 
     def main(self) -> Dict[str, dict]:
-        unknown = [m for m in self.modes if m not in MODES]
+        unknown = [m for m in self.modes if m != "auto" and m not in MODES]
         if unknown:
-            raise ValueError(f"unknown modes {unknown}; choose from {sorted(MODES)}")
+            raise ValueError(f"unknown modes {unknown}; choose auto or one of {sorted(MODES)}")
         datasets: Dict[str, List[Pair]] = {}
         for root in self.lol:
             datasets[f"LOL {root.name} eval"] = lol_pairs(root, "eval")

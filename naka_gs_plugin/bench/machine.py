@@ -35,7 +35,7 @@ def describe_cpu() -> str:
     """One line: CPU model, ISA features that matter here, ATen capability, native bf16, threads."""
     import torch
 
-    from naka_gs_plugin.enhance.correction import native_bf16
+    from naka_gs_plugin.cpu import native_bf16
 
     features = [
         name

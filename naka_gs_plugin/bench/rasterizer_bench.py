@@ -51,6 +51,8 @@ import tyro
 from rich.console import Console
 from rich.table import Table
 
+from naka_gs_plugin.bench.machine import describe_cpu
+
 SH_DEGREE = 3
 FOV_X_DEG = 60.0
 REFERENCE_WIDTH = 441
@@ -459,11 +461,13 @@ def report(cfg: BenchConfig) -> None:
         f"load average (1/5/15 min) at start {load_start[0]:.2f}/{load_start[1]:.2f}/{load_start[2]:.2f}, "
         f"at end {load_end[0]:.2f}/{load_end[1]:.2f}/{load_end[2]:.2f} on {os.cpu_count()} CPUs"
     )
+    console.print(describe_cpu(), markup=False)
     if cfg.out_json is not None:
         payload = {
             "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(cfg).items()},
             "torch": torch.__version__,
             "cpu_count": os.cpu_count(),
+            "cpu": describe_cpu(),
             "load_average_start": load_start,
             "load_average_end": load_end,
             **results,

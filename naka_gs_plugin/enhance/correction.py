@@ -44,6 +44,7 @@ import torch.nn.functional as F
 from jaxtyping import Float
 from torch import Tensor, nn
 
+from naka_gs_plugin.cpu import native_bf16
 from naka_gs_plugin.enhance.lean_ops import norm_act
 from naka_gs_plugin.enhance.correction_net import (
     STD_FLOOR,
@@ -257,10 +258,10 @@ class InferenceMode:
     lean: bool = False
     """Inference-only forward (:func:`lean_predict_maps`): each activation freed after its last use,
     GroupNorm + residual + GELU fused in one pass (:mod:`naka_gs_plugin.enhance.lean_ops`), in-place
-    SE ops, the decoders' concatenations and full upsampled inputs never built. With ``bf16`` the
-    body's weights and activations are bfloat16 (no float32 round trips as under autocast) and freed
-    blocks stay in the heap for reuse during the call (:func:`reuse_freed_memory`); without, float32.
-    The heads and maps stay float32.
+    SE ops, the decoders' concatenations and full upsampled inputs never built, freed blocks kept in
+    the heap for reuse during the call (:func:`reuse_freed_memory`). With ``bf16`` the body's weights
+    and activations are bfloat16 (no float32 round trips as under autocast); without, float32. The
+    heads and maps stay float32.
     Implies channels-last; not combined with tiles (they replay statistics through the module forwards)."""
 
 
@@ -299,19 +300,6 @@ else ``lean-f32``. Measured with ``naka-gs-bench-correction`` and the shipped we
 the fastest mode on its kind of CPU that stays within 0.05 dB / 0.002 SSIM of ``exact`` on LOM test +
 LOL eval15. Every reduced-resolution mode loses more than 0.002 SSIM with these weights: the maps
 carry detail that even an ideal downsample-upsample of the exact maps loses."""
-
-
-def native_bf16() -> Tuple[bool, str]:
-    """Whether bfloat16 convolutions run natively here, and why: the CPU has AVX-512 BF16 or AMX, and
-    neither oneDNN nor ATen is capped below it (``ONEDNN_MAX_CPU_ISA``, ``ATEN_CPU_CAPABILITY``)."""
-    if not (torch.cpu._is_avx512_bf16_supported() or torch.cpu._is_amx_tile_supported()):
-        return False, "this CPU has neither AVX-512 BF16 nor AMX"
-    if not torch.ops.mkldnn._is_mkldnn_bf16_supported():
-        return False, "oneDNN has no bfloat16 kernels here (ONEDNN_MAX_CPU_ISA caps it)"
-    capability = torch.backends.cpu.get_cpu_capability()
-    if not capability.startswith("AVX512"):
-        return False, f"PyTorch's kernels run at {capability} (ATEN_CPU_CAPABILITY caps them)"
-    return True, "this CPU has native bfloat16 (AVX-512 BF16 or AMX)"
 
 
 _RESOLVED: Dict[str, str] = {}
@@ -568,17 +556,18 @@ def _glibc():
 
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
 _GLIBC_DEFAULTS = {_M_TRIM_THRESHOLD: 128 * 1024, _M_MMAP_THRESHOLD: 128 * 1024}
-HEAP_BLOCK_LIMIT = 192 << 20
-"""Largest block :func:`reuse_freed_memory` keeps in the heap: a full-resolution (1764x1172)
-32-channel bfloat16 activation is 132 MB. (The float32 lean forward does not use it: heap
-fragmentation between its 265 MB blocks took its peak RSS at full resolution from 1.9 to 2.7 GB,
-for 10-20% in speed.)"""
+HEAP_BLOCK_LIMIT = {torch.bfloat16: 192 << 20, torch.float32: 64 << 20}
+"""Largest full-resolution activation (the stem's width x H x W) for which the lean forward keeps
+freed blocks in the heap (:func:`reuse_freed_memory`), by the body's dtype: 1764x1172 in bfloat16
+(132 MB), 882x586 in float32 (66 MB). Beyond, fragmentation between freed blocks costs more memory
+than the page faults cost time: the float32 forward at 1764x1172 peaked at 2.2-2.7 GB with the heap
+(10-15% faster) and at 1.9-2.0 GB without; at 882x586 the heap made it 12% faster for no memory."""
 
 
 @contextlib.contextmanager
-def reuse_freed_memory() -> Iterator[None]:
-    """Within the block, serve large allocations (up to :data:`HEAP_BLOCK_LIMIT`) from the process heap
-    and keep freed ones there.
+def reuse_freed_memory(max_block: int = HEAP_BLOCK_LIMIT[torch.bfloat16]) -> Iterator[None]:
+    """Within the block, serve large allocations up to ``max_block`` bytes (:data:`HEAP_BLOCK_LIMIT`)
+    from the process heap and keep freed ones there.
 
     glibc maps every block above 32 MiB with ``mmap`` and unmaps it on free, so each new activation
     page-faults its memory back in, zeroed by the kernel: measured on a 2-core CPU, ``x + x`` on a
@@ -591,7 +580,7 @@ def reuse_freed_memory() -> Iterator[None]:
     if libc is None:
         yield
         return
-    libc.mallopt(_M_MMAP_THRESHOLD, HEAP_BLOCK_LIMIT)
+    libc.mallopt(_M_MMAP_THRESHOLD, max_block)
     libc.mallopt(_M_TRIM_THRESHOLD, 1 << 30)
     try:
         yield
@@ -704,7 +693,10 @@ class CorrectionRunner:
     def predict_maps(self, low: Tensor, naka: Tensor) -> Tuple[Tensor, Tensor]:
         """``(mul, add)`` float32 at the resolution of ``low``/``naka`` (whole image or tiles)."""
         if self.mode.lean:
-            with reuse_freed_memory() if self.mode.bf16 else contextlib.nullcontext():
+            stem = self.net.stem.conv.weight
+            limit = HEAP_BLOCK_LIMIT[stem.dtype]
+            largest = stem.shape[0] * low.shape[-2] * low.shape[-1] * stem.element_size()
+            with reuse_freed_memory(limit) if largest <= limit else contextlib.nullcontext():
                 mul, add = lean_predict_maps(self.net, low, naka)
             return mul.contiguous(), add.contiguous()
         if not self.mode.tile or (low.shape[-2] <= self.mode.tile and low.shape[-1] <= self.mode.tile):

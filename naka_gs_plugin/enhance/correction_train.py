@@ -41,6 +41,7 @@ from jaxtyping import Float
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 
+from naka_gs_plugin.cpu import fit_threads
 from naka_gs_plugin.enhance.correction import MODES, CorrectionRunner, load_correction, save_correction
 from naka_gs_plugin.enhance.correction_loss import CorrectionLoss
 from naka_gs_plugin.enhance.correction_net import ChromaGuided, ChromaGuidedConfig
@@ -376,6 +377,7 @@ def train(config: TrainConfig) -> Dict[str, list]:
         raise ValueError(f"unknown --val-mode {config.val_mode!r}; choose one of {sorted(MODES)}")
     if config.threads:
         torch.set_num_threads(config.threads)
+    fit_threads()
     torch.manual_seed(config.seed)
     out = config.output_dir
     out.mkdir(parents=True, exist_ok=True)

@@ -27,6 +27,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 
 from naka_gs_plugin.data.safe_io import atomic_write, usable_cache_dir
+from naka_gs_plugin.cpu import fit_threads
 from naka_gs_plugin.enhance.correction import (
     DEFAULT_MODE,
     DEFAULT_WEIGHTS,
@@ -131,6 +132,7 @@ class Enhancer:
         self._cache_warned = False
         self.last_run = {"computed": 0, "cached": 0, "seconds": 0.0}
         """Counts of the last :meth:`enhance_images` call: images computed vs read from cache."""
+        fit_threads()  # the heavy stages (correction network, cpu-fast rasterizer) follow this count
         self.correction_path = config.correction_path() if config.method == "naka" else None
         self.correction_mode = resolve_mode(config.correction_mode)
         """The concrete inference mode (``auto`` resolved for this CPU): part of the cache key."""

@@ -1,0 +1,52 @@
+"""naka_gs_plugin.cpu: native bfloat16 detection and the thread cap."""
+
+import torch
+
+import naka_gs_plugin.cpu as cpu
+
+
+def test_native_bf16_needs_the_cpu_and_uncapped_kernels(monkeypatch):
+    monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda: False)
+    monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda: False)
+    assert cpu.native_bf16() == (False, "this CPU has neither AVX-512 BF16 nor AMX")
+    monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda: True)
+    monkeypatch.setattr(torch.ops.mkldnn, "_is_mkldnn_bf16_supported", lambda: False)
+    assert "ONEDNN_MAX_CPU_ISA" in cpu.native_bf16()[1]
+    monkeypatch.setattr(torch.ops.mkldnn, "_is_mkldnn_bf16_supported", lambda: True)
+    monkeypatch.setattr(torch.backends.cpu, "get_cpu_capability", lambda: "AVX2")
+    assert cpu.native_bf16() == (False, "PyTorch's kernels run at AVX2 (ATEN_CPU_CAPABILITY caps them)")
+    monkeypatch.setattr(torch.backends.cpu, "get_cpu_capability", lambda: "AVX512")
+    assert cpu.native_bf16()[0]
+
+
+def test_cgroup_quota_v2_and_v1(tmp_path):
+    (tmp_path / "cpu.max").write_text("150000 100000\n")
+    assert cpu.cgroup_cpu_limit(tmp_path) == 1.5
+    (tmp_path / "cpu.max").write_text("max 100000\n")
+    assert cpu.cgroup_cpu_limit(tmp_path) is None
+    (tmp_path / "cpu.max").unlink()
+    (tmp_path / "cpu").mkdir()
+    (tmp_path / "cpu" / "cpu.cfs_quota_us").write_text("200000")
+    (tmp_path / "cpu" / "cpu.cfs_period_us").write_text("100000")
+    assert cpu.cgroup_cpu_limit(tmp_path) == 2.0
+    (tmp_path / "cpu" / "cpu.cfs_quota_us").write_text("-1")
+    assert cpu.cgroup_cpu_limit(tmp_path) is None
+
+
+def test_fit_threads_caps_at_the_usable_cpus_and_logs_once(monkeypatch, capsys):
+    threads = torch.get_num_threads()
+    monkeypatch.setattr(cpu, "_FITTED", {})
+    monkeypatch.setattr(cpu, "cgroup_cpu_limit", lambda: 1.2)  # a container limited to 1.2 CPUs
+    monkeypatch.setattr(cpu.os, "cpu_count", lambda: 64)
+    monkeypatch.setattr(cpu.os, "sched_getaffinity", lambda pid: set(range(64)))
+    assert cpu.usable_cpus() == (2, "the cgroup CPU quota")
+    try:
+        torch.set_num_threads(8)
+        assert cpu.fit_threads() == 2 and torch.get_num_threads() == 2
+        torch.set_num_threads(8)
+        cpu.fit_threads()
+        assert capsys.readouterr().out == "[naka-gs] using 2 threads instead of 8: 2 CPUs usable (the cgroup CPU quota)\n"
+        torch.set_num_threads(1)  # fewer than usable: kept
+        assert cpu.fit_threads() == 1 and torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(threads)
