@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-from naka_gs_plugin.bench.grid import BenchSpecError, Bench, load_grid, pareto
+from naka_gs_plugin.bench.grid import REPO, BenchSpecError, Bench, load_grid, pareto
 
 
 def _grid(tmp_path: Path, scene: Path, families: str) -> Path:
@@ -80,3 +80,15 @@ def test_missing_grid_file_names_the_shipped_grids(tmp_path):
 def test_pareto_front_keeps_only_undominated_points():
     points = [(1.0, 10.0), (2.0, 9.0), (3.0, 12.0), (4.0, 12.0), (5.0, 13.0)]
     assert sorted(pareto(points)) == [0, 2, 4]
+
+
+def test_every_shipped_grid_loads():
+    """Each configs/bench/*.yaml names settings that exist (the LOM protocol's per-scene weights too)."""
+    grids = sorted((REPO / "configs" / "bench").glob("*.yaml"))
+    assert any(g.name == "lom-holdout.yaml" for g in grids)
+    for grid in grids:
+        spec = load_grid(grid)
+        assert spec.milestones and spec.families
+    holdout = load_grid(REPO / "configs" / "bench" / "lom-holdout.yaml")
+    for name, scene in holdout.scenes.items():
+        assert scene["correction"] == f"outputs/correction-loo/{name}/best.pt" and scene["data"].endswith(f"lom/{name}")
