@@ -71,8 +71,15 @@ def interrupted(toy_scene, tmp_path_factory) -> Interrupted:
     work = tmp_path_factory.mktemp("ctrl_c")
     log_path = work / "train.log"
     with open(log_path, "w") as log:
+        # A shell without job control starts background jobs with SIGINT ignored, and ns-train (rightly)
+        # keeps it ignored: give the child the default disposition a terminal's Ctrl-C meets.
         proc = subprocess.Popen(
-            _ns_train(toy_scene, work / "out", 2000), cwd=work, env=_env(), stdout=log, stderr=subprocess.STDOUT
+            _ns_train(toy_scene, work / "out", 2000),
+            cwd=work,
+            env=_env(),
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
         )
     try:
         deadline = time.monotonic() + 120
