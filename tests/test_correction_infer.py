@@ -235,6 +235,12 @@ def test_sigma_auto_is_the_scene_mean_and_its_key_covers_every_view():
     assert keys(images, "auto") != keys(images, 0.05)
 
 
+@pytest.mark.parametrize("field, value", [("sigma", -1.0), ("sigma", 0.0), ("sigma", float("nan")), ("n", 0.0)])
+def test_bad_naka_options_name_the_option(field, value):
+    with pytest.raises(ValueError, match=rf"--pipeline\.datamanager\.enhance\.{field} must be > 0"):
+        Enhancer(EnhanceConfig(correction="none", **{field: value}))
+
+
 def test_missing_weights_fail_clearly(tmp_path, monkeypatch):
     monkeypatch.setattr(pipeline_mod, "DEFAULT_WEIGHTS", tmp_path / "chroma_guided_default.pt")
     with pytest.raises(FileNotFoundError, match="chroma_guided_default.pt.*correction none"):

@@ -58,6 +58,13 @@ def test_lom_scene_parses_with_distortion_and_ground_truth(scene):
     assert len(val.image_filenames) == len(_json(scene, "transforms_val.json")["frames"])
 
 
+@pytest.mark.parametrize("factor", [0, -2])
+def test_downscale_factor_below_one_names_the_option(toy_scene, tmp_path, factor):
+    parser = LowLightDataParserConfig(data=toy_scene, downscale_factor=factor, cache_dir=tmp_path).setup()
+    with pytest.raises(LowLightDataError, match=rf"downscale-factor must be a whole number >= 1, got {factor}"):
+        parser.get_dataparser_outputs("train")
+
+
 def test_auto_downscale_and_cached_copies(toy_scene, tmp_path):
     assert auto_downscale(1764, 1172) == 2 and auto_downscale(500, 375) == 1
     out = (

@@ -284,6 +284,11 @@ class LowLightDataParser(DataParser):
         else:
             _check_sizes(frames)
 
+        if self.config.downscale_factor is not None and self.config.downscale_factor < 1:
+            raise LowLightDataError(
+                f"--pipeline.datamanager.dataparser.downscale-factor must be a whole number >= 1, got "
+                f"{self.config.downscale_factor}: pass 1 (full resolution), 2, 4, ... or leave it out (automatic)"
+            )
         factor = self.config.downscale_factor or auto_downscale(*frames.intrinsics[0, 4:6].tolist())
         images = frames.images
         if factor > 1 and has_gt:

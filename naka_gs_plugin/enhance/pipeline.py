@@ -132,6 +132,10 @@ class Enhancer:
         self._cache_warned = False
         self.last_run = {"computed": 0, "cached": 0, "seconds": 0.0}
         """Counts of the last :meth:`enhance_images` call: images computed vs read from cache."""
+        if config.sigma != "auto" and not (isinstance(config.sigma, (int, float)) and config.sigma > 0):
+            raise ValueError(f"--pipeline.datamanager.enhance.sigma must be > 0 or auto, got {config.sigma!r} (default 0.05)")
+        if not config.n > 0:
+            raise ValueError(f"--pipeline.datamanager.enhance.n must be > 0, got {config.n!r} (default 1.0)")
         fit_threads()  # the heavy stages (correction network, cpu-fast rasterizer) follow this count
         self.correction_path = config.correction_path() if config.method == "naka" else None
         self.correction_mode = resolve_mode(config.correction_mode)
