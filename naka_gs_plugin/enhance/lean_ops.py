@@ -102,17 +102,6 @@ def _round_impl(v, like):
     return lambda v, like: v
 
 
-def _widen(h, like):
-    """A value stored as ``like``'s elements, as float32 (identity for float32)."""
-
-
-@overload(_widen, inline="always")
-def _widen_impl(h, like):
-    if isinstance(like.dtype, types.Integer):
-        return lambda h, like: _bf16_to_f32(h)
-    return lambda h, like: h
-
-
 @njit(cache=True, inline="always")
 def _exp_f32(a):
     """``exp(a)`` for float32 ``a`` in [-87, 0]: ``a = k ln2 + r``, ``|r| <= ln2 / 2``, a degree-6
@@ -229,7 +218,7 @@ def _apply(x, scale, shift, residual, table, act, out):
         for c in range(n_ch):
             h = _round(_load(x[p, c]) * scale[c] + shift[c], x)
             if has_res:
-                h = _round(_widen(h, x) + _load(residual[p, c]), x)
+                h = _round(_load(h) + _load(residual[p, c]), x)  # h is stored as x's elements are
             out[p, c] = _act(h, table) if act else h
 
 
