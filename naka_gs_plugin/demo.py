@@ -28,20 +28,15 @@ import torch
 import tyro
 from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
-from torchmetrics.functional.image import peak_signal_noise_ratio
 
-from naka_gs_plugin.enhance.cli import contact_sheet
+from naka_gs_plugin.data.images import read_rgb
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
-from naka_gs_plugin.sim.effects import read_image
+from naka_gs_plugin.metrics import psnr
+from naka_gs_plugin.sheet import contact_sheet
 from naka_gs_plugin.sim.generate import generate
 from naka_gs_plugin.sim.spec import load_spec
 
 DEFAULT_SPEC = Path(__file__).resolve().parents[1] / "configs" / "scenes" / "dark-noisy.yaml"
-
-
-def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
-    """PSNR in dB between two float images in [0, 1] (torchmetrics, as nerfstudio's metrics)."""
-    return float(peak_signal_noise_ratio(a.float(), b.float(), data_range=1.0))
 
 
 @dataclass
@@ -61,8 +56,8 @@ class Demo:
     def main(self) -> dict:
         scene_dir = generate(load_spec(self.spec), self.out / "scene")
         names = sorted(p.name for p in (scene_dir / "train").iterdir())
-        low = [torch.from_numpy(read_image(scene_dir / "train" / n)).float() for n in names]
-        truth = [torch.from_numpy(read_image(scene_dir / "train_gt" / n)).float() for n in names]
+        low = [torch.from_numpy(read_rgb(scene_dir / "train" / n)) for n in names]
+        truth = [torch.from_numpy(read_rgb(scene_dir / "train_gt" / n)) for n in names]
         enhanced = Enhancer(self.enhance).enhance_images(low, description="Enhancing demo scene")
         report: Dict = {
             "scene": str(scene_dir),

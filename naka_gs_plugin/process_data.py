@@ -37,10 +37,9 @@ import pycolmap
 import torch
 import tyro
 from nerfstudio.utils.rich_utils import CONSOLE
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from naka_gs_plugin.data.images import ImageReadError, read_rgb
+from naka_gs_plugin.data.images import IMAGE_SUFFIXES, ImageReadError, read_rgb
 from naka_gs_plugin.data.safe_io import (
     UnsafeOutputError,
     atomic_write,
@@ -62,8 +61,8 @@ from naka_gs_plugin.points.sfm import (
     match_features,
     quiet_colmap,
 )
+from naka_gs_plugin.progress import StageProgress
 
-IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v")
 MIN_REGISTERED = 3
 ENHANCE_CHUNK = 16
@@ -113,16 +112,6 @@ def extract_video_frames(video: Path, out: Path, fps: float) -> List[Path]:
     if result.returncode != 0:
         raise ProcessDataError(f"{video}: ffmpeg failed ({result.stdout.strip()[-300:]}) -- check the file plays")
     return list_images(out)
-
-
-def _progress() -> Progress:
-    return Progress(
-        TextColumn("[progress.description]{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        console=CONSOLE,
-    )
 
 
 def camera_json(camera: pycolmap.Camera) -> Dict[str, float]:
@@ -246,7 +235,7 @@ class ProcessData:
             seconds["match"] = time.perf_counter() - t0
             stats = database_stats(database)
             t0 = time.perf_counter()
-            with _progress() as progress:
+            with StageProgress() as progress:
                 task = progress.add_task("Incremental mapping (images registered)", total=len(names))
                 model, n_models = incremental_mapping(
                     database,

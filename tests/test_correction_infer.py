@@ -262,7 +262,7 @@ def test_unknown_mode_rejected():
 def test_datamanager_corrects_training_images_only(toy_scene, tmp_path):
     from naka_gs_plugin.data.lowlight_datamanager import LowLightDatamanagerConfig
     from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig
-    from naka_gs_plugin.enhance.cli import load_rgb
+    from naka_gs_plugin.data.images import read_stored
 
     ckpt = save_correction(_net(SMALL), tmp_path / "net.pt")
 
@@ -278,7 +278,7 @@ def test_datamanager_corrects_training_images_only(toy_scene, tmp_path):
     changed = [not torch.equal(a["image"], b["image"]) for a, b in zip(naka.cached_train, corrected.cached_train)]
     assert all(changed) and corrected.enhancer.last_run["computed"] == 8
     for data, path in zip(corrected.cached_eval, corrected.eval_dataset.image_filenames):
-        assert torch.equal(data["image"][..., :3], load_rgb(path))
+        assert torch.equal(data["image"][..., :3], torch.from_numpy(read_stored(path)))
 
 
 def test_bench_times_modes_in_fresh_processes_and_writes_the_sheet(toy_scene, tmp_path):

@@ -7,8 +7,8 @@ import torch
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.models.splatfacto import RGB2SH
 
+from naka_gs_plugin.data.images import read_rgb
 from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig
-from naka_gs_plugin.enhance.cli import load_rgb
 from naka_gs_plugin.model.naka_gs_model import NakaGSModelConfig, NonFiniteTrainingError, viewmat_from_c2w
 from tests.helpers import train_steps
 
@@ -25,7 +25,7 @@ def _model(n=400, seed_rgb=True, **overrides):
 @pytest.fixture
 def frames(toy_scene):
     out = LowLightDataParserConfig(data=toy_scene, downscale_factor=1).setup().get_dataparser_outputs("train")
-    images = [load_rgb(p).float() / 255.0 for p in out.image_filenames]
+    images = [torch.from_numpy(read_rgb(p)) for p in out.image_filenames]
     return out.cameras, images
 
 

@@ -283,12 +283,12 @@ def _train(rasterizer, toy_scene, steps=30):
     """``steps`` of splatfacto training (with densification) on the toy scene; returns the model
     and its last loss."""
     from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig
-    from naka_gs_plugin.enhance.cli import load_rgb
+    from naka_gs_plugin.data.images import read_rgb
     from naka_gs_plugin.model.naka_gs_model import NakaGSModelConfig
 
     out = LowLightDataParserConfig(data=toy_scene, downscale_factor=1).setup().get_dataparser_outputs("train")
     cameras = out.cameras
-    images = [load_rgb(p).float() / 255.0 for p in out.image_filenames]
+    images = [torch.from_numpy(read_rgb(p)) for p in out.image_filenames]
     torch.manual_seed(0)
     g = torch.Generator().manual_seed(0)
     xyz = (torch.rand(250, 3, generator=g) - 0.5) * 1.2

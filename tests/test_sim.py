@@ -12,9 +12,10 @@ import pytest
 import torch
 import yaml
 
+from naka_gs_plugin.data.images import read_rgb
 from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig
 from naka_gs_plugin.sim import cli, stats
-from naka_gs_plugin.sim.effects import read_image, sensor
+from naka_gs_plugin.sim.effects import sensor
 from naka_gs_plugin.sim.generate import build_scene, generate
 from naka_gs_plugin.sim.spec import Noise, SimSpecError, load_spec, shipped_specs
 
@@ -35,7 +36,7 @@ def make(tmp_path: Path, effects: list, name: str = "s", seed: int | None = None
 
 
 def train_images(scene: Path, folder: str = "train") -> np.ndarray:
-    return np.stack([read_image(p) for p in sorted((scene / folder).iterdir())])
+    return np.stack([read_rgb(p, np.float64) for p in sorted((scene / folder).iterdir())])
 
 
 @pytest.fixture(scope="module")
@@ -266,7 +267,7 @@ def test_shipped_capture_spec_generates(tmp_path, monkeypatch):
     assert 0.01 < train.mean() < 0.08  # real low-light range of mean sRGB values
     source = manifest(scene)["train_views"][0]["source_image"]
     assert Path(source).parent.name == "high"
-    truth = read_image(scene / "train_gt" / "0000.png")
+    truth = read_rgb(scene / "train_gt" / "0000.png", np.float64)
     assert truth.mean() > 5 * train[0].mean()
 
 

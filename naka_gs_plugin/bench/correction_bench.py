@@ -53,12 +53,11 @@ def _net(weights: str):
 def _pair(path: Path):
     """(low, naka) as float32 ``[1, 3, H, W]`` sRGB [0, 1] (Naka: reference parameters, per image)."""
     import torch
-    from PIL import Image
 
+    from naka_gs_plugin.data.images import read_rgb
     from naka_gs_plugin.enhance.naka import naka_enhance
 
-    with Image.open(path) as im:  # not enhance.cli.load_rgb: that module imports nerfstudio (slow)
-        low = torch.from_numpy(np.array(im.convert("RGB"))).float() / 255.0
+    low = torch.from_numpy(read_rgb(path))
     return low.permute(2, 0, 1)[None].contiguous(), naka_enhance(low).permute(2, 0, 1)[None].contiguous()
 
 
@@ -96,6 +95,7 @@ def run_child(
 
     from naka_gs_plugin.enhance.correction import CorrectionRunner, resolve_mode
     from naka_gs_plugin.enhance.correction_net import apply_maps
+    from naka_gs_plugin.metrics import psnr
 
     torch.set_grad_enabled(False)
     net = _net(weights)
@@ -142,11 +142,8 @@ def run_child(
                 pred = apply_maps(q_naka, mul, add, net.config.lf_kernel, net.config.lf_sigma)
             else:
                 pred = runner(q_low, q_naka)["enhanced"]
-            mse = float(((pred - gt) ** 2).mean())
             ssim = float(kornia.metrics.ssim(pred, gt, 11).mean())
-            scores.append(
-                {"set": name, "image": str(gt_path), "psnr": 10 * np.log10(1.0 / max(mse, 1e-12)), "ssim": ssim}
-            )
+            scores.append({"set": name, "image": str(gt_path), "psnr": psnr(pred, gt), "ssim": ssim})
         result["quality"] = scores
     return result
 
@@ -190,8 +187,8 @@ class CorrectionBench:
         """Low / Naka / corrected rows for ``sheet_views`` (each view downscaled to ``sheet_width``)."""
         from PIL import Image
 
-        from naka_gs_plugin.enhance.cli import contact_sheet
         from naka_gs_plugin.enhance.correction import CorrectionRunner
+        from naka_gs_plugin.sheet import contact_sheet
 
         runner = CorrectionRunner(_net(self.weights), self.sheet_mode)
         cols = []

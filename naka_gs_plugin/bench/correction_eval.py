@@ -30,9 +30,11 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from rich.table import Table
 from torch import Tensor
 
+from naka_gs_plugin.data.images import read_rgb
 from naka_gs_plugin.enhance.correction import DEFAULT_WEIGHTS, MODES, CorrectionRunner, load_correction
 from naka_gs_plugin.enhance.correction_loss import gray_edge_mask, luminance
-from naka_gs_plugin.enhance.correction_train import Pair, lol_pairs, lom_pairs, read_image, to_float, with_naka
+from naka_gs_plugin.enhance.correction_train import Pair, lol_pairs, lom_pairs, with_naka
+from naka_gs_plugin.metrics import psnr
 
 
 def gray_world(image: Float[Tensor, "B 3 H W"]) -> Float[Tensor, "B 3 H W"]:
@@ -51,14 +53,11 @@ def masks(gt: Float[Tensor, "1 3 H W"], quantile: float = 0.85) -> Dict[str, Ten
 
 def scores(pred: Tensor, gt: Tensor, weights: Dict[str, Tensor]) -> Dict[str, float]:
     """PSNR/SSIM of one image pair under each weight map."""
-    err = (pred - gt) ** 2
     ssim_map = kornia.metrics.ssim(pred, gt, 11)
     out = {}
     for name, w in weights.items():
-        total = w.sum().clamp(min=1e-12)
-        mse = (err * w).sum() / (3 * total)
-        out[f"psnr_{name}"] = float(10 * torch.log10(1.0 / mse.clamp(min=1e-10)))
-        out[f"ssim_{name}"] = float((ssim_map * w).sum() / (3 * total))
+        out[f"psnr_{name}"] = psnr(pred, gt, w)
+        out[f"ssim_{name}"] = float((ssim_map * w).sum() / (3 * w.sum().clamp(min=1e-12)))
     return out
 
 
@@ -96,8 +95,8 @@ class EvalConfig:
             per_image: Dict[str, List[dict]] = {m: [] for m in methods}
             seconds: Dict[str, List[float]] = {m: [] for m in self.modes}
             for pair in pairs:
-                low_hw3 = torch.from_numpy(to_float(read_image(pair.low)))[None]
-                gt = torch.from_numpy(to_float(read_image(pair.high))).permute(2, 0, 1)[None]
+                low_hw3 = torch.from_numpy(read_rgb(pair.low))[None]
+                gt = torch.from_numpy(read_rgb(pair.high)).permute(2, 0, 1)[None]
                 low = low_hw3.permute(0, 3, 1, 2).contiguous()
                 naka = with_naka(low_hw3)
                 preds = {"input": low, "naka": naka, "naka+grayworld": gray_world(naka)}

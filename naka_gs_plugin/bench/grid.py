@@ -40,7 +40,8 @@ import numpy as np
 import tyro
 import yaml
 from nerfstudio.utils.rich_utils import CONSOLE
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+from naka_gs_plugin.progress import StageProgress
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -324,7 +325,7 @@ class Bench:
                 if done is None or (self.retry_failed and done["status"] == "failed") or done.get("settings") != r["settings"] or done.get("milestones") != r["milestones"]:
                     todo.append(r)
             CONSOLE.print(f"[naka-gs bench] {spec.name}: {len(runs)} runs, {len(runs) - len(todo)} already done", markup=False)
-            with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), console=CONSOLE) as progress:
+            with StageProgress() as progress:
                 task = progress.add_task("grid", total=len(todo))
                 for r in todo:
                     progress.update(task, description=f"{r['id']}")

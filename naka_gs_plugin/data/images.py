@@ -21,6 +21,10 @@ from jaxtyping import Float
 from PIL import Image, ImageFile
 
 
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
+"""Image file endings the plugin reads (compare with ``Path.suffix.lower()``)."""
+
+
 class ImageReadError(ValueError):
     """An image that cannot be used; the message names the file and the fix."""
 
@@ -61,25 +65,43 @@ def read_raw(path: Path) -> np.ndarray:
     return arr
 
 
-def read_rgb(path: Path) -> Float[np.ndarray, "H W 3"]:
-    """An image file as float32 sRGB in [0, 1]: 8-bit /255, 16-bit /65535, float as stored.
+def read_rgb(path: Path, dtype: type = np.float32) -> Float[np.ndarray, "H W 3"]:
+    """An image file as sRGB in [0, 1] (``dtype``, default float32): 8-bit /255, 16-bit /65535, float as stored.
 
     Grey images are repeated to 3 channels, alpha is dropped. Truncated, empty and non-image
     files, and non-finite pixels (float files), raise :class:`ImageReadError` rather than
     reaching training.
     """
-    return to_rgb01(read_raw(path), path)
+    return as_float(read_stored(path), dtype)
+
+
+def read_stored(path: Path) -> np.ndarray:
+    """An image file as RGB ``[H, W, 3]`` at its own depth: ``uint8``/``uint16`` as stored (a quarter or
+    half of :func:`read_rgb`'s memory, for holding many images), float files as float32 in [0, 1]."""
+    return np.ascontiguousarray(_rgb(read_raw(path), path))
 
 
 def to_rgb01(arr: np.ndarray, path: Path) -> Float[np.ndarray, "H W 3"]:
     """A :func:`read_raw` array as float32 RGB in [0, 1] (see :func:`read_rgb`; ``path`` names errors)."""
+    return as_float(_rgb(arr, path))
+
+
+def as_float(rgb: np.ndarray, dtype: type = np.float32) -> Float[np.ndarray, "H W 3"]:
+    """A :func:`read_stored` array in [0, 1] as ``dtype``: ``uint8`` /255, ``uint16`` /65535, float as is."""
+    if rgb.dtype == np.uint8:
+        return rgb.astype(dtype) / dtype(255.0)
+    if rgb.dtype == np.uint16:
+        return rgb.astype(dtype) / dtype(65535.0)
+    return rgb.astype(dtype)
+
+
+def _rgb(arr: np.ndarray, path: Path) -> np.ndarray:
+    """OpenCV's grey/BGR(A) -> RGB at the stored depth; float data checked finite and clipped to [0, 1]."""
     if arr.ndim == 2:
         arr = arr[:, :, None].repeat(3, axis=2)
     arr = arr[..., :3][..., ::-1]  # OpenCV's BGR(A) -> RGB
-    if arr.dtype == np.uint8:
-        return arr.astype(np.float32) / 255.0
-    if arr.dtype == np.uint16:
-        return arr.astype(np.float32) / 65535.0
+    if arr.dtype in (np.uint8, np.uint16):
+        return arr
     arr = arr.astype(np.float32)
     bad = ~np.isfinite(arr)
     if bad.any():
@@ -87,4 +109,3 @@ def to_rgb01(arr: np.ndarray, path: Path) -> Float[np.ndarray, "H W 3"]:
             f"{path}: {int(bad.any(axis=-1).sum())} pixels are NaN/Inf -- fix or re-export the image (8/16-bit PNG)"
         )
     return np.clip(arr, 0.0, 1.0)
-

@@ -43,7 +43,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 from torch import Tensor
 
-from naka_gs_plugin.data.images import ImageReadError, read_raw, to_rgb01
+from naka_gs_plugin.data.images import IMAGE_SUFFIXES, ImageReadError, read_raw, to_rgb01
 from naka_gs_plugin.data.safe_io import atomic_write, usable_cache_dir
 from naka_gs_plugin.enhance.pipeline import default_cache_dir
 
@@ -55,8 +55,6 @@ MAX_FOCAL_RATIO = 100.0
 ROTATION_TOLERANCE = 1e-2
 """Largest ``|R^T R - I|`` entry accepted for a pose's rotation block (exports round to ~1e-7)."""
 DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
-
-_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".JPG", ".JPEG", ".PNG")
 
 
 class LowLightDataError(ValueError):
@@ -153,7 +151,7 @@ def _resolve_image(scene: Path, frame: dict, index: int, path: Path) -> Path:
         )
     candidate = (scene / fp).resolve() if not Path(fp).is_absolute() else Path(fp)
     if candidate.suffix == "" and not candidate.exists():  # Blender-style extensionless paths
-        for suffix in _IMAGE_SUFFIXES:
+        for suffix in IMAGE_SUFFIXES + tuple(s.upper() for s in IMAGE_SUFFIXES):
             if candidate.with_suffix(suffix).exists():
                 return candidate.with_suffix(suffix)
     return candidate

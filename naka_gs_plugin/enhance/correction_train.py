@@ -42,14 +42,13 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 
 from naka_gs_plugin.cpu import fit_threads
+from naka_gs_plugin.data.images import IMAGE_SUFFIXES, as_float, read_stored
 from naka_gs_plugin.enhance.correction import MODES, CorrectionRunner, load_correction, save_correction
 from naka_gs_plugin.enhance.correction_loss import CorrectionLoss
 from naka_gs_plugin.enhance.correction_net import ChromaGuided, ChromaGuidedConfig
 from naka_gs_plugin.enhance.naka import naka_enhance
+from naka_gs_plugin.metrics import psnr
 from naka_gs_plugin.progress import StageProgress
-
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
-
 
 @dataclass
 class TrainConfig:
@@ -173,21 +172,6 @@ def sim_pairs(scene: Path) -> List[Pair]:
     return pairs
 
 
-def read_image(path: Path) -> np.ndarray:
-    """An 8- or 16-bit image file as ``uint8``/``uint16`` RGB ``[H, W, 3]`` (alpha dropped)."""
-    arr = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if arr is None:
-        raise FileNotFoundError(f"{path}: unreadable image")
-    if arr.ndim == 2:
-        arr = np.repeat(arr[..., None], 3, axis=2)
-    return np.ascontiguousarray(arr[..., :3][..., ::-1])
-
-
-def to_float(arr: np.ndarray) -> np.ndarray:
-    """uint8/uint16 -> float32 in [0, 1]."""
-    return arr.astype(np.float32) / (65535.0 if arr.dtype == np.uint16 else 255.0)
-
-
 def naka_np(image: Float[np.ndarray, "H W 3"]) -> Float[np.ndarray, "H W 3"]:
     """The reference Naka pre-enhancement (per-image statistics) of one float image."""
     return naka_enhance(torch.from_numpy(image)).numpy()
@@ -200,7 +184,7 @@ def edge_correlation(low: np.ndarray, high: np.ndarray) -> float:
     correlation is as low for well-aligned pairs with different lighting), but drop sharply with any shift.
     """
     mags = []
-    for img in (naka_np(to_float(low)), to_float(high)):
+    for img in (naka_np(as_float(low)), as_float(high)):
         luma = img @ np.array([0.299, 0.587, 0.114], np.float32)
         luma = cv2.GaussianBlur(cv2.resize(luma, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA), (0, 0), 1.0)
         gx, gy = cv2.Sobel(luma, cv2.CV_32F, 1, 0), cv2.Sobel(luma, cv2.CV_32F, 0, 1)
@@ -220,7 +204,7 @@ class PairSet:
         with StageProgress() as progress:
             task = progress.add_task(description, total=len(self.pairs))
             for p in self.pairs:
-                low, high = read_image(p.low), read_image(p.high)
+                low, high = read_stored(p.low), read_stored(p.high)
                 if low.shape != high.shape:
                     raise ValueError(
                         f"{p.low} is {low.shape[1]}x{low.shape[0]} but {p.high} is {high.shape[1]}x{high.shape[0]}"
@@ -250,8 +234,8 @@ def augment(
     h, w = low.shape[:2]
     s = rng.uniform(*scale_range)
     size = (max(crop, int(round(w * s))), max(crop, int(round(h * s))))
-    low = cv2.resize(to_float(low), size, interpolation=cv2.INTER_LINEAR)
-    high = cv2.resize(to_float(high), size, interpolation=cv2.INTER_LINEAR)
+    low = cv2.resize(as_float(low), size, interpolation=cv2.INTER_LINEAR)
+    high = cv2.resize(as_float(high), size, interpolation=cv2.INTER_LINEAR)
     y, x = rng.integers(0, size[1] - crop + 1), rng.integers(0, size[0] - crop + 1)
     low, high = low[y : y + crop, x : x + crop], high[y : y + crop, x : x + crop]
     if rng.random() < 0.5:
@@ -268,21 +252,16 @@ def with_naka(low: Float[Tensor, "B H W 3"]) -> Float[Tensor, "B 3 H W"]:
     return naka_enhance(low).permute(0, 3, 1, 2).contiguous()
 
 
-def psnr(pred: Tensor, gt: Tensor) -> float:
-    """``10 log10(1 / (MSE + 1e-8))`` (reference), images in [0, 1]."""
-    return float(10.0 * torch.log10(1.0 / (((pred - gt) ** 2).mean() + 1e-8)))
-
-
 @torch.no_grad()
 def validate(net: ChromaGuided, val: PairSet, mode: str = "exact") -> Dict[str, float]:
     """Full-resolution PSNR per image (network run in inference ``mode``), averaged overall and per source."""
     runner = CorrectionRunner(net, mode)
     scores: Dict[str, List[float]] = {}
     for pair, lo, hi in zip(val.pairs, val.low, val.high):
-        low = torch.from_numpy(to_float(lo))[None]
-        gt = torch.from_numpy(to_float(hi)).permute(2, 0, 1)[None]
+        low = torch.from_numpy(as_float(lo))[None]
+        gt = torch.from_numpy(as_float(hi)).permute(2, 0, 1)[None]
         out = runner(low.permute(0, 3, 1, 2).contiguous(), with_naka(low))["enhanced"]
-        scores.setdefault(pair.source, []).append(psnr(out, gt))
+        scores.setdefault(pair.source, []).append(psnr(out, gt, eps=1e-8))
     result = {f"psnr_{k}": float(np.mean(v)) for k, v in scores.items()}
     result["psnr"] = float(np.mean([s for v in scores.values() for s in v]))
     return result

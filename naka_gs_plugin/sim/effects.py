@@ -132,11 +132,3 @@ def write_image(path: Path, encoded: Float[Tensor, "H W 3"], effects: Sequence[E
     else:
         img.save(path, format="PNG")
 
-
-def read_image(path: Path) -> Float[np.ndarray, "H W 3"]:
-    """Read an 8-bit or 16-bit RGB image as float64 in [0, 1] (values as stored: encoded)."""
-    arr = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if arr is None:
-        raise FileNotFoundError(f"{path}: unreadable image")
-    scale = 65535.0 if arr.dtype == np.uint16 else 255.0
-    return arr[..., :3][..., ::-1].astype(np.float64) / scale

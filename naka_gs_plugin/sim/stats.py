@@ -28,7 +28,7 @@ import numpy as np
 import tyro
 from jaxtyping import Float
 
-from naka_gs_plugin.sim.effects import read_image
+from naka_gs_plugin.data.images import read_rgb
 
 
 @dataclass
@@ -73,8 +73,8 @@ def seed_noise_line(pairs: List[tuple], bins: int = 12) -> tuple:
     are neither saturated nor black in any channel), then a line is fitted.
     Free of texture, unlike :func:`noise_line`; needs a second generation (``naka-gs-sim --seed``).
     """
-    a = np.concatenate([read_image(p).reshape(-1, 3) for p, _ in pairs])
-    b = np.concatenate([read_image(q).reshape(-1, 3) for _, q in pairs])
+    a = np.concatenate([read_rgb(p, np.float64).reshape(-1, 3) for p, _ in pairs])
+    b = np.concatenate([read_rgb(q, np.float64).reshape(-1, 3) for _, q in pairs])
     keep = (np.maximum(a, b).max(1) < 254.0 / 255.0) & (np.minimum(a, b).min(1) > 0.0)
     a, b = a.mean(1)[keep], b.mean(1)[keep]
     level, var = (a + b) / 2, (a - b) ** 2 / 2
@@ -87,7 +87,7 @@ def seed_noise_line(pairs: List[tuple], bins: int = 12) -> tuple:
 
 
 def image_stats(path: Path, max_side: int = 400, crop: int = 512) -> ImageStats:
-    img = read_image(path)
+    img = read_rgb(path, np.float64)
     h, w = img.shape[:2]
     factor = max(1, int(np.ceil(max(h, w) / max_side)))
     small = img[: h // factor * factor, : w // factor * factor]
@@ -133,7 +133,10 @@ def main(args: StatsArgs) -> Dict[str, Dict[str, float]]:
         first, second = (Path(d) for d in dirs.split(","))
         files = [(p, second / p.name) for p in sorted(first.iterdir())[: args.per_folder]]
         slope, intercept = seed_noise_line(files)
-        mean = table[label]["mean"] if label in table else float(np.mean([read_image(p).mean() for p, _ in files]))
+        if label in table:
+            mean = table[label]["mean"]
+        else:
+            mean = float(np.mean([read_rgb(p, np.float64).mean() for p, _ in files]))
         std = float(np.sqrt(max(slope * mean + intercept, 0.0)))
         table[f"{label} (2 seeds)"] = {
             **table.get(label, {"n_images": len(files), "mean": mean, "saturated_pct": float("nan")}),
