@@ -1,5 +1,6 @@
 """Low-light datamanager: train images enhanced and cached on disk, eval images untouched."""
 
+import json
 import shutil
 import time
 
@@ -7,9 +8,10 @@ import pytest
 import torch
 
 import naka_gs_plugin.enhance.pipeline as pipeline_mod
+from naka_gs_plugin.data.images import read_rgb, read_stored
 from naka_gs_plugin.data.lowlight_datamanager import LowLightDatamanagerConfig, MissingGroundTruthError
 from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig
-from naka_gs_plugin.enhance.cli import load_rgb
+from naka_gs_plugin.enhance.cli import EnhanceCLI
 from naka_gs_plugin.enhance.naka import naka_enhance
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig
 
@@ -26,7 +28,7 @@ def _dm(scene, dtype="float32", **enhance):
 def test_train_images_are_naka_enhanced(toy_scene):
     dm = _dm(toy_scene, correction="none")  # Naka alone; the correction net: tests/test_correction_infer.py
     for data, path in zip(dm.cached_train, dm.train_dataset.image_filenames):
-        want = naka_enhance(load_rgb(path).float() / 255.0)
+        want = naka_enhance(torch.from_numpy(read_rgb(path)))
         assert torch.allclose(data["image"], want, atol=2e-5)  # 16-bit cache quantisation
 
 
@@ -34,9 +36,10 @@ def test_eval_images_are_byte_identical_to_source(toy_scene):
     dm = _dm(toy_scene, dtype="uint8")
     assert len(dm.cached_eval) == 2
     for data, path in zip(dm.cached_eval, dm.eval_dataset.image_filenames):
-        assert torch.equal(data["image"][..., :3], load_rgb(path))
+        assert torch.equal(data["image"][..., :3], torch.from_numpy(read_stored(path)))
     _, batch = dm.next_eval_image(0)
-    assert torch.equal(batch["image"][..., :3], load_rgb(dm.eval_dataset.image_filenames[batch["image_idx"]]))
+    want = read_stored(dm.eval_dataset.image_filenames[batch["image_idx"]])
+    assert torch.equal(batch["image"][..., :3], torch.from_numpy(want))
 
 
 def test_cache_hit_on_second_run_and_miss_when_sigma_changes(toy_scene, monkeypatch):
@@ -72,7 +75,7 @@ def test_cache_hit_on_second_run_and_miss_when_sigma_changes(toy_scene, monkeypa
 
 def test_scene_stats_cache_key_covers_all_views(toy_scene):
     dm = _dm(toy_scene, stats="scene", correction="none")
-    images = [load_rgb(p).float() / 255.0 for p in dm.train_dataset.image_filenames]
+    images = [torch.from_numpy(read_rgb(p)) for p in dm.train_dataset.image_filenames]
     want = naka_enhance(torch.stack(images), stats="scene")
     got = torch.stack([d["image"] for d in dm.cached_train])
     assert torch.allclose(got, want, atol=2e-5)
@@ -82,7 +85,7 @@ def test_scene_stats_cache_key_covers_all_views(toy_scene):
 def test_no_enhancement_baseline_passes_images_through(toy_scene):
     dm = _dm(toy_scene, method="none")
     for data, path in zip(dm.cached_train, dm.train_dataset.image_filenames):
-        assert torch.allclose(data["image"], load_rgb(path).float() / 255.0)
+        assert torch.allclose(data["image"], torch.from_numpy(read_rgb(path)))
 
 
 def test_scene_without_test_images_trains_and_refuses_metrics(toy_scene, tmp_path):
@@ -106,3 +109,21 @@ def test_missing_test_images_render_as_placeholders_not_metrics(toy_scene, tmp_p
     batch = dm.eval_dataset[1]  # what ns-render dataset reads: poses render, gt is a black placeholder
     assert batch["image"].shape == (48, 64, 3) and batch["image"].abs().sum() == 0
     assert batch["image_idx"] == 1
+
+
+def test_enhance_cli_fills_the_training_cache(toy_scene, tmp_path):
+    """``naka-gs-enhance SCENE`` then ``ns-train`` on SCENE (distorted camera): training computes nothing."""
+    scene = tmp_path / "scene"
+    shutil.copytree(toy_scene, scene)
+    for split in ("train", "test"):
+        meta_path = scene / f"transforms_{split}.json"
+        meta = json.loads(meta_path.read_text())
+        meta.update(k1=0.05, p1=0.002)  # undistortion changes the pixels the enhancer sees
+        meta_path.write_text(json.dumps(meta))
+    written = EnhanceCLI(scene=scene, out=tmp_path / "enhanced", sheet=False).main()
+    assert len(written) == 8 and all(p.is_file() for p in written)
+
+    dm = LowLightDatamanagerConfig(dataparser=LowLightDataParserConfig(data=scene)).setup(device="cpu")
+    assert dm.train_dataset.cameras.distortion_params.abs().sum() > 0
+    dm.cached_train
+    assert dm.enhancer.last_run["computed"] == 0 and dm.enhancer.last_run["cached"] == 8

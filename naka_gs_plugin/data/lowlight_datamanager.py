@@ -115,6 +115,12 @@ class LowLightDatamanager(FullImageDatamanager[LowLightDataset]):
         if not self.has_ground_truth:
             self.eval_unseen_cameras = []
 
+    def load_unenhanced_train(self) -> List[Dict[str, torch.Tensor]]:
+        """The training images as training loads them, before enhancement: full bit depth, downscaled,
+        undistorted (``naka-gs-enhance`` enhances these, so training then finds them in the cache).
+        Once per datamanager: undistortion updates the cameras' intrinsics in place."""
+        return super()._load_images("train", self.config.cache_images)
+
     def _load_images(
         self, split: Literal["train", "eval"], cache_images_device: Literal["cpu", "gpu"]
     ) -> List[Dict[str, torch.Tensor]]:

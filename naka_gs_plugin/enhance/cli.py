@@ -1,9 +1,11 @@
 """``naka-gs-enhance SCENE --out DIR``: the training-time enhancement, run outside training.
 
-Reads a ``lowlight-data`` scene's training images, enhances them exactly as the datamanager
-does (same :class:`~naka_gs_plugin.enhance.pipeline.Enhancer`, same cache, including the
-correction network: ``--enhance.correction none|default|PATH --enhance.correction-mode MODE``), and
-writes 8-bit PNGs plus an optional contact sheet. Prints the throughput in images per second.
+Loads a ``lowlight-data`` scene's training images through the low-light datamanager (same reader,
+downscaling and undistortion as ``ns-train naka-gs``), enhances them with its
+:class:`~naka_gs_plugin.enhance.pipeline.Enhancer` (same cache keys, including the correction network:
+``--enhance.correction none|default|PATH --enhance.correction-mode MODE``), so a later ``ns-train`` with
+the same options reads every image from the cache, and writes 8-bit PNGs plus an optional contact
+sheet. Prints the throughput in images per second.
 
 The output folder is built next to --out and moved into place when complete; --out may not be,
 contain or lie inside a folder of input images, and an existing non-empty --out is replaced only
@@ -26,7 +28,8 @@ import tyro
 from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 
-from naka_gs_plugin.data.images import ImageReadError, read_raw
+from naka_gs_plugin.data.images import ImageReadError
+from naka_gs_plugin.data.lowlight_datamanager import LowLightDatamanagerConfig
 from naka_gs_plugin.data.lowlight_dataparser import LowLightDataError, LowLightDataParserConfig, read_split
 from naka_gs_plugin.data.safe_io import (
     UnsafeOutputError,
@@ -36,29 +39,7 @@ from naka_gs_plugin.data.safe_io import (
     staging_dir,
 )
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
-
-
-def load_rgb(path: Path) -> torch.Tensor:
-    """An image file as ``uint8 [H, W, 3]`` sRGB (16-bit PNGs are reduced to 8 bit, alpha dropped).
-
-    The file is checked in full first (:func:`~naka_gs_plugin.data.images.read_raw`): a truncated
-    JPEG raises :class:`ImageReadError` instead of being padded."""
-    read_raw(path)
-    with Image.open(path) as im:
-        return torch.from_numpy(np.array(im.convert("RGB")))
-
-
-def contact_sheet(rows: Sequence[Sequence[np.ndarray]], max_width: int = 384) -> np.ndarray:
-    """Tile images (float [0,1] or uint8, ``[H, W, 3]``) into a grid, each resized to one tile size."""
-    first = rows[0][0]
-    scale = min(1.0, max_width / first.shape[1])
-    size = (max(1, int(first.shape[1] * scale)), max(1, int(first.shape[0] * scale)))
-
-    def tile(img: np.ndarray) -> np.ndarray:
-        arr = img if img.dtype == np.uint8 else (np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)
-        return np.asarray(Image.fromarray(arr).resize(size, Image.Resampling.BILINEAR))
-
-    return np.concatenate([np.concatenate([tile(im) for im in row], axis=1) for row in rows], axis=0)
+from naka_gs_plugin.sheet import contact_sheet
 
 
 @dataclass
@@ -70,8 +51,8 @@ class EnhanceCLI:
     out: Path = Path("outputs/enhanced")
     """Output folder for the enhanced PNGs and the sheet."""
     enhance: EnhanceConfig = field(default_factory=EnhanceConfig)
-    downscale_factor: int = 1
-    """Image downscale before enhancing (1 = full resolution)."""
+    downscale_factor: Optional[int] = None
+    """Image downscale before enhancing (1 = full resolution; default: automatic, as ``ns-train``)."""
     sheet: bool = True
     """Also write before_after.png for up to ``sheet_views`` views (rows: input, enhanced; with the
     correction network: input, Naka only, corrected)."""
@@ -88,11 +69,18 @@ class EnhanceCLI:
             raise UnsafeOutputError(
                 f"{self.scene}: two training images would both be written as --out/{dup} -- rename one"
             )
-        outputs = LowLightDataParserConfig(data=self.scene, downscale_factor=self.downscale_factor).setup()
-        paths = outputs.get_dataparser_outputs("train").image_filenames
-        images = [load_rgb(p) for p in paths]
+        datamanager = LowLightDatamanagerConfig(
+            dataparser=LowLightDataParserConfig(data=self.scene, downscale_factor=self.downscale_factor),
+            enhance=self.enhance,
+        ).setup(device="cpu")
+        # Quiet: nerfstudio logs its loading step, and a bad image must print one line, the error.
+        quiet, CONSOLE.quiet = CONSOLE.quiet, True
+        try:
+            images = [data["image"] for data in datamanager.load_unenhanced_train()]
+        finally:
+            CONSOLE.quiet = quiet
         start = time.perf_counter()
-        enhanced = Enhancer(self.enhance).enhance_images(images, description=f"Enhancing {self.scene.name}")
+        enhanced = datamanager.enhancer.enhance_images(images, description=f"Enhancing {self.scene.name}")
         seconds = time.perf_counter() - start
         out = self.out.resolve()
         stage = staging_dir(out)
