@@ -37,6 +37,7 @@ from naka_gs_plugin.enhance.correction import (
     load_correction,
     resolve_mode,
 )
+from naka_gs_plugin.enhance.exposure import MIDDLE_GREY, apply_gamma, lift_gamma
 from naka_gs_plugin.enhance.naka import linear_stretch, naka_rushton, stretch_stats
 from naka_gs_plugin.progress import StageProgress
 
@@ -75,6 +76,10 @@ class EnhanceConfig(InstantiateConfig):
     correction: str = "default"
     """Correction network applied after Naka (method ``naka`` only): ``none``, ``default`` (the weights
     shipped in ``naka_gs_plugin/enhance/weights/``) or the path of a checkpoint (ours or the authors')."""
+    exposure: Union[float, Literal["none"]] = MIDDLE_GREY
+    """Scene exposure after the correction network (:mod:`naka_gs_plugin.enhance.exposure`): when the
+    enhanced views' mean is below this sRGB level, one curve ``x ** g`` shared by every view lifts it there
+    (default 0.4613, middle grey); ``none`` keeps the network's exposure. Applied after the cache."""
     correction_mode: ModeName = DEFAULT_MODE
     """Correction inference mode (``naka_gs_plugin.enhance.correction.MODES``): ``auto`` picks the fastest
     one that keeps the quality bar on this CPU (``lean`` with native bfloat16, else ``lean-f32``);
@@ -134,6 +139,10 @@ class Enhancer:
         """Counts of the last :meth:`enhance_images` call: images computed vs read from cache."""
         if config.sigma != "auto" and not (isinstance(config.sigma, (int, float)) and config.sigma > 0):
             raise ValueError(f"--pipeline.datamanager.enhance.sigma must be > 0 or auto, got {config.sigma!r} (default 0.05)")
+        if config.exposure != "none" and not (isinstance(config.exposure, (int, float)) and 0 < config.exposure < 1):
+            raise ValueError(
+                f"--pipeline.datamanager.enhance.exposure must be in (0, 1) or none, got {config.exposure!r} (default {MIDDLE_GREY})"
+            )
         if not config.n > 0:
             raise ValueError(f"--pipeline.datamanager.enhance.n must be > 0, got {config.n!r} (default 1.0)")
         fit_threads()  # the heavy stages (correction network, cpu-fast rasterizer) follow this count
@@ -207,7 +216,10 @@ class Enhancer:
     def enhance_images(
         self, images: Sequence[UInt8[Tensor, "H W C"] | Float[Tensor, "H W C"]], description: str = "Enhancing"
     ) -> List[Float[Tensor, "H W 3"]]:
-        """Enhance every image (sRGB [0,1] float32 out), reading/writing the cache; shows progress."""
+        """Enhance every image (sRGB [0,1] float32 out), reading/writing the cache; shows progress.
+
+        ``images`` are one scene: the exposure curve (and ``sigma auto``, ``stats scene``) is computed over
+        all of them."""
         start = time.perf_counter()
         if self.config.method == "none":
             self.last_run = {"computed": 0, "cached": 0, "seconds": 0.0}
@@ -247,6 +259,10 @@ class Enhancer:
                     out[i] = (enhanced * 65535.0).round() / 65535.0
                     self._write(keys[i], out[i])
                     progress.advance(task)
+        done = [o for o in out if o is not None]
+        gamma = 1.0 if self.config.exposure == "none" else lift_gamma(done, float(self.config.exposure))
+        if gamma != 1.0:
+            done = [(im * 65535.0).round() / 65535.0 for im in apply_gamma(done, gamma)]
         seconds = time.perf_counter() - start
         self.last_run = {
             "computed": len(todo),
@@ -254,13 +270,15 @@ class Enhancer:
             "seconds": seconds,
             "naka_seconds": naka_s,
             "correction_seconds": correction_s,
+            "exposure_gamma": gamma,
         }
         CONSOLE.log(
             f"[naka-gs] {description}: {len(images)} images, {len(todo)} computed, "
-            f"{len(images) - len(todo)} from cache ({self.cache_dir or 'cache off'}) in {seconds:.2f} s",
+            f"{len(images) - len(todo)} from cache ({self.cache_dir or 'cache off'}) in {seconds:.2f} s"
+            + (f", exposure lifted to {self.config.exposure} (gamma {gamma:.3f})" if gamma != 1.0 else ""),
             markup=False,
         )
-        return [o for o in out if o is not None]
+        return done
 
     def _scene_stats(self, images: Sequence[Tensor], sigma: float) -> tuple[Tensor, Tensor]:
         """Pooled min/max of the Naka response over all views (views may differ in size)."""
