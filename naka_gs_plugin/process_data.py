@@ -48,7 +48,7 @@ from naka_gs_plugin.data.safe_io import (
     publish_dir,
     staging_dir,
 )
-from naka_gs_plugin.enhance.correction import DEFAULT_WEIGHTS
+from naka_gs_plugin.enhance.checkpoint import DEFAULT_WEIGHTS
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
 from naka_gs_plugin.points.sfm import (
     CameraModel,

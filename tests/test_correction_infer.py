@@ -7,18 +7,17 @@ import pytest
 import torch
 
 import naka_gs_plugin.enhance.pipeline as pipeline_mod
+from naka_gs_plugin.enhance.checkpoint import authors_key_map, load_correction, save_correction
 from naka_gs_plugin.enhance.correction import (
     MODES,
     CorrectionRunner,
     InferenceMode,
     ModeName,
-    authors_key_map,
     correct_image,
-    load_correction,
     receptive_radius,
-    save_correction,
 )
 from naka_gs_plugin.enhance.correction_net import ChromaGuided, ChromaGuidedConfig
+from naka_gs_plugin.enhance.correction_train import half_resolution_maps
 from naka_gs_plugin.enhance.naka import naka_enhance
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer, scene_sigma
 
@@ -90,21 +89,20 @@ def test_modes_finite_bounded_and_close(mode):
     assert (out["mul_map"] - 1).abs().max() <= 0.6 and out["add_map"].abs().max() <= 0.25
     m = MODES[mode]
     diff = (out["enhanced"] - exact["enhanced"]).abs()
-    if m.map_scale == 1.0 and m.stats_scale == 1.0:
-        assert diff.mean() < (2e-2 if m.bf16 or m.lean else 1e-5), mode  # bf16: ~8 significant bits in the body
+    if m.stats_scale == 1.0:
+        assert diff.mean() < (2e-2 if m.bf16 else 1e-5), mode  # bf16: ~8 significant bits in the body
 
 
-def test_reduced_resolution_maps_compose_at_full_resolution():
-    """With constant maps (zeroed head filters) upsampling is exact, so every map scale must give
-    the exact output: the maps, not the image, are resampled, and the detail of Naka is kept."""
+def test_half_resolution_validation_maps_compose_at_full_resolution():
+    """With constant maps (zeroed head filters) upsampling is exact, so maps predicted at half size must
+    give the exact output: the maps, not the image, are resampled, and the detail of Naka is kept."""
     net = _net()
     for head in (net.mul_head, net.add_head):
         torch.nn.init.zeros_(head.weight)
         torch.nn.init.constant_(head.bias, 0.3)
     low, naka = _pair(61, 47)
     exact = net(low, naka)["enhanced"]
-    for mode in ("0.7-bf16", "quarter-bf16"):
-        assert (CorrectionRunner(net, mode)(low, naka)["enhanced"] - exact).abs().max() < 1e-6, mode
+    assert (half_resolution_maps(CorrectionRunner(net, "exact"), low, naka) - exact).abs().max() < 1e-6
 
 
 def test_correct_image_is_channel_last():
@@ -209,7 +207,7 @@ def test_enhancer_applies_the_correction_and_keys_the_cache(tmp_path):
 
     base = keys(correction=str(ckpt), correction_mode="exact")
     assert base != keys(correction="none")
-    assert base != keys(correction=str(ckpt), correction_mode="half")
+    assert base != keys(correction=str(ckpt), correction_mode="lean-f32")
     again = Enhancer(EnhanceConfig(correction=str(ckpt), correction_mode="exact"))
     again.enhance_images(images)
     assert again.last_run["computed"] == 0  # same weights and mode: cached
@@ -256,7 +254,9 @@ def test_unknown_mode_rejected():
     with pytest.raises(ValueError, match="unknown correction mode"):
         CorrectionRunner(_net(), "turbo")
     with pytest.raises(ValueError, match="multiples of 8"):
-        CorrectionRunner(_net(), dataclasses.replace(MODES["tiled"], tile=50))
+        CorrectionRunner(_net(), dataclasses.replace(MODES["tiled-lowmem"], tile=50))
+    with pytest.raises(ValueError, match="lean forward"):
+        CorrectionRunner(_net(), InferenceMode(bf16=True))
 
 
 def test_datamanager_corrects_training_images_only(toy_scene, tmp_path):
@@ -290,7 +290,7 @@ def test_bench_times_modes_in_fresh_processes_and_writes_the_sheet(toy_scene, tm
     bench = CorrectionBench(
         image=views[0],
         weights=str(save_correction(_net(SMALL), tmp_path / "net.pt")),
-        modes=("half-bf16", "lean"),
+        modes=("lean-f32", "lean"),
         quality_modes=(),
         threads=1,
         repeats=2,
@@ -300,7 +300,7 @@ def test_bench_times_modes_in_fresh_processes_and_writes_the_sheet(toy_scene, tm
         sheet_width=32,
     )
     results = bench.main()
-    assert [r["mode"] for r in results] == ["exact", "half-bf16", "lean"]
+    assert [r["mode"] for r in results] == ["exact", "lean-f32", "lean"]
     assert results[0]["max_abs"] == 0 and results[1]["max_abs"] > 0 and results[2]["max_abs"] > 0
     assert all(r["threads"] == 1 for r in results)
     assert all(r["seconds"] > 0 and r["peak_gb"] > 0.1 for r in results)

@@ -10,7 +10,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from naka_gs_plugin.enhance.correction import load_correction
+from naka_gs_plugin.enhance.checkpoint import load_correction
 from naka_gs_plugin.enhance.correction_loss import (
     CorrectionLoss,
     LossWeights,
@@ -322,7 +322,7 @@ def test_gray_world_equalises_channel_means():
 
 def test_eval_cli_scores_methods_and_neutral_net_equals_naka(tmp_path):
     from naka_gs_plugin.bench.correction_eval import EvalConfig
-    from naka_gs_plugin.enhance.correction import save_correction
+    from naka_gs_plugin.enhance.checkpoint import save_correction
 
     _write_pairs(tmp_path / "pairs", "eval", 2, np.random.default_rng(2))
     model = ChromaGuided(TINY)

@@ -31,7 +31,8 @@ from rich.table import Table
 from torch import Tensor
 
 from naka_gs_plugin.data.images import read_rgb
-from naka_gs_plugin.enhance.correction import DEFAULT_WEIGHTS, MODES, CorrectionRunner, load_correction
+from naka_gs_plugin.enhance.checkpoint import DEFAULT_WEIGHTS, load_correction
+from naka_gs_plugin.enhance.correction import MODES, CorrectionRunner
 from naka_gs_plugin.enhance.correction_loss import gray_edge_mask, luminance
 from naka_gs_plugin.enhance.correction_train import Pair, lol_pairs, lom_pairs, with_naka
 from naka_gs_plugin.metrics import psnr
@@ -147,7 +148,7 @@ def markdown(result: Dict[str, dict]) -> str:
 
 
 def entrypoint() -> None:
-    """CLI: ``naka-gs-eval-correction --lol DIR --lom SCENE ... [--weights PT] [--modes exact half-bf16]``."""
+    """CLI: ``naka-gs-eval-correction --lol DIR --lom SCENE ... [--weights PT] [--modes exact lean-f32]``."""
     config = tyro.cli(EvalConfig)
     try:
         result = config.main()

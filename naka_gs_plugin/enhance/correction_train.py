@@ -14,8 +14,8 @@ rotation (p = 0.5 each), Naka computed on the augmented crop (per-crop min-max),
 mask-guided loss (:mod:`naka_gs_plugin.enhance.correction_loss`). Validation: full-resolution PSNR
 ``10 log10(1 / (MSE + 1e-8))`` averaged per image, every epoch (epoch 0 = before training).
 Checkpoints ``latest.pt`` (every epoch) and ``best.pt`` (best validation PSNR) are
-:func:`~naka_gs_plugin.enhance.correction.save_correction` files (float32) plus the optimizer,
-scheduler, epoch, history and this config, so :func:`~naka_gs_plugin.enhance.correction.load_correction`
+:func:`~naka_gs_plugin.enhance.checkpoint.save_correction` files (float32) plus the optimizer,
+scheduler, epoch, history and this config, so :func:`~naka_gs_plugin.enhance.checkpoint.load_correction`
 reads them directly.
 
 A YAML recipe sets the defaults: ``naka-gs-train-correction --config configs/correction/default.yaml``
@@ -35,6 +35,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import cv2
 import numpy as np
 import torch
+import torch.nn.functional as F
 import tyro
 import yaml
 from jaxtyping import Float
@@ -43,9 +44,10 @@ from torch import Tensor
 
 from naka_gs_plugin.cpu import fit_threads
 from naka_gs_plugin.data.images import IMAGE_SUFFIXES, as_float, read_stored
-from naka_gs_plugin.enhance.correction import MODES, CorrectionRunner, load_correction, save_correction
+from naka_gs_plugin.enhance.checkpoint import load_correction, save_correction
+from naka_gs_plugin.enhance.correction import MODES, CorrectionRunner
 from naka_gs_plugin.enhance.correction_loss import CorrectionLoss
-from naka_gs_plugin.enhance.correction_net import ChromaGuided, ChromaGuidedConfig
+from naka_gs_plugin.enhance.correction_net import ChromaGuided, ChromaGuidedConfig, apply_maps
 from naka_gs_plugin.enhance.naka import naka_enhance
 from naka_gs_plugin.metrics import psnr
 from naka_gs_plugin.progress import StageProgress
@@ -107,9 +109,10 @@ class TrainConfig:
     log_every: int = 10
     """Log a training-loss line every this many iterations (for log files, where no bar is drawn)."""
     val_mode: str = "exact"
-    """Inference mode of the validation forward (naka_gs_plugin.enhance.correction.MODES): ``exact`` is the
-    float32 full-resolution forward; ``half`` predicts the maps at half resolution (about 4x cheaper),
-    as the datamanager's default mode does. PSNR is always computed at full resolution."""
+    """Validation forward: an inference mode (naka_gs_plugin.enhance.correction.MODES; ``exact``: the plain
+    float32 forward), or ``half``: ``exact`` with the maps predicted at half resolution and upsampled
+    bilinearly (about 4x cheaper; selects checkpoints, it is no inference mode: it loses SSIM). PSNR is
+    always computed at full resolution."""
 
 
 @dataclass
@@ -252,15 +255,33 @@ def with_naka(low: Float[Tensor, "B H W 3"]) -> Float[Tensor, "B 3 H W"]:
     return naka_enhance(low).permute(0, 3, 1, 2).contiguous()
 
 
+VAL_MODES = ("half", *sorted(MODES))
+"""``--val-mode`` choices (see :attr:`TrainConfig.val_mode`)."""
+
+
+def half_resolution_maps(
+    runner: CorrectionRunner, low: Float[Tensor, "B 3 H W"], naka: Float[Tensor, "B 3 H W"]
+) -> Float[Tensor, "B 3 H W"]:
+    """The corrected image with the maps predicted on the pair at half size (area filter) and
+    upsampled bilinearly to full size, where they are applied to ``naka``."""
+    h, w = low.shape[-2:]
+    half = (max(1, round(h / 2)), max(1, round(w / 2)))
+    mul, add = runner.predict_maps(*(F.interpolate(t, size=half, mode="area") for t in (low, naka)))
+    mul, add = (F.interpolate(m, size=(h, w), mode="bilinear", align_corners=False) for m in (mul, add))
+    return apply_maps(naka, mul, add, runner.net.config.lf_kernel, runner.net.config.lf_sigma)
+
+
 @torch.no_grad()
 def validate(net: ChromaGuided, val: PairSet, mode: str = "exact") -> Dict[str, float]:
-    """Full-resolution PSNR per image (network run in inference ``mode``), averaged overall and per source."""
-    runner = CorrectionRunner(net, mode)
+    """Full-resolution PSNR per image (network run in ``mode``, one of :data:`VAL_MODES`), averaged
+    overall and per source."""
+    runner = CorrectionRunner(net, "exact" if mode == "half" else mode)
     scores: Dict[str, List[float]] = {}
     for pair, lo, hi in zip(val.pairs, val.low, val.high):
         low = torch.from_numpy(as_float(lo))[None]
         gt = torch.from_numpy(as_float(hi)).permute(2, 0, 1)[None]
-        out = runner(low.permute(0, 3, 1, 2).contiguous(), with_naka(low))["enhanced"]
+        low, naka = low.permute(0, 3, 1, 2).contiguous(), with_naka(low)
+        out = half_resolution_maps(runner, low, naka) if mode == "half" else runner(low, naka)["enhanced"]
         scores.setdefault(pair.source, []).append(psnr(out, gt, eps=1e-8))
     result = {f"psnr_{k}": float(np.mean(v)) for k, v in scores.items()}
     result["psnr"] = float(np.mean([s for v in scores.values() for s in v]))
@@ -352,8 +373,8 @@ def load_sources(config: TrainConfig) -> Tuple[PairSet, PairSet, List[Tuple[str,
 
 def train(config: TrainConfig) -> Dict[str, list]:
     """Run the training; returns the history (per epoch: train loss terms, validation PSNR, seconds)."""
-    if config.val_mode not in MODES:
-        raise ValueError(f"unknown --val-mode {config.val_mode!r}; choose one of {sorted(MODES)}")
+    if config.val_mode not in VAL_MODES:
+        raise ValueError(f"unknown --val-mode {config.val_mode!r}; choose one of {VAL_MODES}")
     if config.threads:
         torch.set_num_threads(config.threads)
     fit_threads()
