@@ -1,10 +1,11 @@
-"""NakaGSPipeline: nerfstudio's VanillaPipeline, seeding the model from ``--pipeline.model.init``.
+"""NakaGSPipeline: nerfstudio's VanillaPipeline, seeding the model from ``--pipeline.init``.
 
 The seed points need what only the datamanager has (the scene's training cameras and dataparser
 normalization; for the triangulation fallback, the *enhanced* training images), and they must
 exist before the model is built. VanillaPipeline builds the model right after the datamanager,
-seeding it only from ``dataparser_outputs.metadata["points3D_xyz"]``, so ``__init__`` is the one
-method replaced; everything else is inherited.
+seeding it from the train dataparser outputs' ``metadata["points3D_xyz"]``/``["points3D_rgb"]``:
+the datamanager is built through :meth:`NakaGSPipeline._datamanager_with_seed`, which resolves the
+seed points and puts them there; everything else is VanillaPipeline's.
 
 Pipelines that load a checkpoint (``ns-eval``, ``ns-viewer``, ``ns-export``: ``test_mode`` other
 than ``val``) never compute seed points: they read the cached cloud if there is one, else start
@@ -15,33 +16,38 @@ load).
 from __future__ import annotations
 
 import tempfile
-import typing
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
-from typing import Any, Dict, Literal, Optional, Tuple, Type
+from typing import Any, Callable, Dict, Literal, Optional, Tuple, Type
 
 import numpy as np
 import torch
-import torch.distributed as dist
-from nerfstudio.models.base_model import Model
-from nerfstudio.pipelines.base_pipeline import Pipeline, VanillaPipeline, VanillaPipelineConfig
+from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
 from torch.cuda.amp.grad_scaler import GradScaler
-from torch.nn.parallel import DistributedDataParallel as DDP
 
 from naka_gs_plugin.data.lowlight_datamanager import LowLightDatamanager, LowLightDatamanagerConfig
 from naka_gs_plugin.data.lowlight_dataparser import read_split
 from naka_gs_plugin.enhance.pipeline import content_hash
 from naka_gs_plugin.model.naka_gs_model import NakaGSModelConfig
-from naka_gs_plugin.points.seeding import SeedResult, TrainingFrame, log_points, resolve_seed_points
+from naka_gs_plugin.points.seeding import (
+    PointInitConfig,
+    SeedResult,
+    TrainingFrame,
+    log_points,
+    resolve_seed_points,
+)
 
 
 @dataclass
 class NakaGSPipelineConfig(VanillaPipelineConfig):
-    """VanillaPipeline + seed points from ``--pipeline.model.init`` (source, alignment, PPM)."""
+    """VanillaPipeline + seed points from ``--pipeline.init`` (source, alignment, PPM)."""
 
     _target: Type = field(default_factory=lambda: NakaGSPipeline)
     datamanager: LowLightDatamanagerConfig = field(default_factory=LowLightDatamanagerConfig)
     model: NakaGSModelConfig = field(default_factory=NakaGSModelConfig)
+    init: PointInitConfig = field(default_factory=PointInitConfig)
+    """Seed points of the Gaussians (source, alignment, PPM)."""
 
 
 class NakaGSPipeline(VanillaPipeline):
@@ -59,38 +65,35 @@ class NakaGSPipeline(VanillaPipeline):
         local_rank: int = 0,
         grad_scaler: Optional[GradScaler] = None,
     ):
-        Pipeline.__init__(self)  # VanillaPipeline.__init__, with the seed points resolved in between
-        self.config = config
-        self.test_mode = test_mode
-        self.datamanager = config.datamanager.setup(
-            device=device, test_mode=test_mode, world_size=world_size, local_rank=local_rank
-        )
-        self.seeding = self._resolve_seed(compute=test_mode == "val")
-        seed_pts = None
+        # The config is handed back unchanged (it is saved and reloaded by ns-eval, ns-viewer...).
+        build = config.datamanager._target
+        config.datamanager._target = partial(self._datamanager_with_seed, build, test_mode == "val")
+        try:
+            super().__init__(config, device, test_mode, world_size, local_rank, grad_scaler)
+        finally:
+            config.datamanager._target = build
+
+    def _datamanager_with_seed(
+        self, build: Callable[..., LowLightDatamanager], compute: bool, config: LowLightDatamanagerConfig, **kwargs
+    ) -> LowLightDatamanager:
+        """The datamanager, its train dataparser outputs' metadata holding the seed points (if any) as
+        VanillaPipeline reads them: ``points3D_xyz`` float32 ``[N, 3]``, ``points3D_rgb`` uint8 ``[N, 3]``
+        (``[0, 3]`` without colours)."""
+        self.datamanager = build(config, **kwargs)
+        self.seeding = self._resolve_seed(compute=compute)
         if self.seeding.xyz is not None:
             rgb = self.seeding.rgb if self.seeding.rgb is not None else np.zeros((0, 3), np.uint8)
-            seed_pts = (torch.from_numpy(self.seeding.xyz).float(), torch.from_numpy(np.ascontiguousarray(rgb)))
-        self.datamanager.to(device)
-        assert self.datamanager.train_dataset is not None, "Missing input dataset"
-        self._model = config.model.setup(
-            scene_box=self.datamanager.train_dataset.scene_box,
-            num_train_data=len(self.datamanager.train_dataset),
-            metadata=self.datamanager.train_dataset.metadata,
-            device=device,
-            grad_scaler=grad_scaler,
-            seed_points=seed_pts,
-        )
-        self.model.to(device)
-        self.world_size = world_size
-        if world_size > 1:
-            self._model = typing.cast(Model, DDP(self._model, device_ids=[local_rank], find_unused_parameters=True))
-            dist.barrier(device_ids=[local_rank])
+            self.datamanager.train_dataparser_outputs.metadata.update(
+                points3D_xyz=torch.from_numpy(self.seeding.xyz).float(),
+                points3D_rgb=torch.from_numpy(np.ascontiguousarray(rgb)),
+            )
+        return self.datamanager
 
     # ---------------------------------------------------------------------------------- seeding
     def _resolve_seed(self, compute: bool) -> SeedResult:
-        init = self.config.model.init
+        init = self.config.init
         if self.config.model.random_init:
-            log_points("seed points: random init (--pipeline.model.random-init True overrides --pipeline.model.init)")
+            log_points("seed points: random init (--pipeline.model.random-init True overrides --pipeline.init)")
             return SeedResult(None, None, {"source": "random", "reason": "random_init"})
         outputs = self.datamanager.train_dataparser_outputs
         scene = Path(self.datamanager.config.dataparser.data)

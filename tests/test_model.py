@@ -1,11 +1,13 @@
 """NakaGSModel in-process on CPU: backend choice, seeding, LPIPS, densification, NaN safety."""
 
+import hashlib
+import inspect
 import math
 
 import pytest
 import torch
 from nerfstudio.data.scene_box import SceneBox
-from nerfstudio.models.splatfacto import RGB2SH
+from nerfstudio.models.splatfacto import RGB2SH, SplatfactoModel
 
 from naka_gs_plugin.data.images import read_rgb
 from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig
@@ -146,3 +148,15 @@ def test_degenerate_gaussians_train_without_nan(frames):
     loss = train_steps(model, cameras, images, steps=2)
     assert torch.isfinite(loss)
     assert all(torch.isfinite(p).all() for p in model.gauss_params.values())
+
+
+SPLATFACTO_GET_OUTPUTS_SHA256 = "ebe38a3708f07ea52b6eead101870cffdad9851c0f9d9cbdc528f11cfbdf263e"
+"""nerfstudio 1.1.5's ``SplatfactoModel.get_outputs``, of which ``NakaGSModel.get_outputs`` is a copy."""
+
+
+def test_upstream_get_outputs_is_the_pinned_one():
+    digest = hashlib.sha256(inspect.getsource(SplatfactoModel.get_outputs).encode()).hexdigest()
+    assert digest == SPLATFACTO_GET_OUTPUTS_SHA256, (
+        f"nerfstudio's SplatfactoModel.get_outputs changed (sha256 {digest}): port the change into "
+        "NakaGSModel.get_outputs (naka_gs_plugin/model/naka_gs_model.py), then update the pin in tests/test_model.py"
+    )

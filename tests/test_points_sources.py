@@ -375,7 +375,7 @@ def _pipeline(data: Path, test_mode: str, **init):
     cfg.model.num_random = 100
     cfg.datamanager.enhance.correction = "none"  # Naka only: fast, and independent of the shipped weights
     for k, v in init.items():
-        setattr(cfg.model.init, k, v)
+        setattr(cfg.init, k, v)
     return cfg.setup(device="cpu", test_mode=test_mode)
 
 
@@ -455,7 +455,7 @@ def test_ns_train_seeded_from_simulator_points(tmp_path):
     env = {**os.environ, "TORCHDYNAMO_DISABLE": "1", "NAKA_GS_CACHE": str(tmp_path / "cache")}
     cmd = [str(BIN / "ns-train"), "naka-gs", "--max-num-iterations", "20", "--output-dir", str(tmp_path / "out"),
            "--vis", "tensorboard", "--viewer.quit-on-train-completion", "True", "--timestamp", "run",
-           "--steps-per-save", "20", "--pipeline.model.init.min-points", "500",
+           "--steps-per-save", "20", "--pipeline.init.min-points", "500",
            "--pipeline.datamanager.enhance.correction", "none", "--data", str(scene)]  # fmt: skip
     res = subprocess.run(cmd, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                          timeout=400)  # fmt: skip

@@ -53,9 +53,9 @@ ALIASES: Dict[str, str] = {
     "correction": "pipeline.datamanager.enhance.correction",
     "rasterizer": "pipeline.model.rasterizer",
     "sh_degree": "pipeline.model.sh_degree",
-    "points": "pipeline.model.init.points",
-    "ppm": "pipeline.model.init.ppm",
-    "voxel_size": "pipeline.model.init.voxel_size",
+    "points": "pipeline.init.points",
+    "ppm": "pipeline.init.ppm",
+    "voxel_size": "pipeline.init.voxel_size",
 }
 """Short names for the settings a grid usually varies."""
 

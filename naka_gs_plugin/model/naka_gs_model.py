@@ -7,9 +7,11 @@ stock splatfacto breaks on a CPU-only or offline machine:
 - ``populate_modules``: stock code calls ``.cuda()`` on seed colours and builds LPIPS eagerly
   (downloads AlexNet; offline it raises). We keep the seed colours on the CPU and build LPIPS
   lazily outside the module tree (:mod:`naka_gs_plugin.model.lpips`).
-- ``get_outputs``: stock code calls ``K.cuda()`` and gsplat's CUDA-only ``rasterization``. We
-  dispatch by device: gsplat for CUDA tensors, the compiled numba tile rasterizer
-  (:mod:`naka_gs_plugin.model.rasterize_cpu_fast`) or our PyTorch one
+- ``get_outputs``: stock code calls ``K.cuda()``, the ``torch.compile``d ``get_viewmat`` (~20 s per
+  CPU process) and gsplat's CUDA-only ``rasterization``, all inside the one method with no hook
+  between, so it is a copy of splatfacto 1.1.5's (a test pins the upstream source: an upgrade fails
+  until the copy is re-checked) that dispatches by device: gsplat for CUDA tensors, the compiled numba
+  tile rasterizer (:mod:`naka_gs_plugin.model.rasterize_cpu_fast`) or our PyTorch one
   (:mod:`naka_gs_plugin.model.rasterize`) otherwise (never by try/except around gsplat: each
   failed call re-attempts a CUDA JIT build).
 - ``get_image_metrics_and_images``: LPIPS is left out (not NaN) when its weights are unavailable,
@@ -34,7 +36,6 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 
 from naka_gs_plugin.model.lpips import LazyLPIPS
-from naka_gs_plugin.points.seeding import PointInitConfig
 
 
 class NonFiniteTrainingError(RuntimeError):
@@ -43,7 +44,7 @@ class NonFiniteTrainingError(RuntimeError):
 
 @dataclass
 class NakaGSModelConfig(SplatfactoModelConfig):
-    """Splatfacto's options plus the rasterizer backend, an optional local LPIPS weights file and the seed points."""
+    """Splatfacto's options plus the rasterizer backend and an optional local LPIPS weights file."""
 
     _target: Type = field(default_factory=lambda: NakaGSModel)
     rasterizer: Literal["auto", "gsplat", "torch", "cpu-fast"] = "auto"
@@ -51,8 +52,6 @@ class NakaGSModelConfig(SplatfactoModelConfig):
     imports, else torch (pure PyTorch, same results, slower). gsplat needs CUDA, cpu-fast CPU."""
     lpips_weights: Optional[Path] = None
     """Local copy of torchvision's alexnet-owt-7be5be79.pth for LPIPS on offline machines."""
-    init: PointInitConfig = field(default_factory=PointInitConfig)
-    """Seed points (source, alignment, PPM); resolved by NakaGSPipeline, which has the images and cameras."""
 
 
 def _numba_available() -> bool:

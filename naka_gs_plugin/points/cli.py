@@ -1,7 +1,7 @@
 """``naka-gs-ppm IN --out OUT.ply``: clean a point cloud with PPM, as ``ns-train naka-gs`` does before seeding.
 
 ``IN`` is a .ply, a COLMAP sparse model folder, a VGGT output folder, or a lowlight-data scene
-folder (its own point source is used, as ``--pipeline.model.init.points auto`` would, without the
+folder (its own point source is used, as ``--pipeline.init.points auto`` would, without the
 triangulation fallback, which needs the training pipeline). With ``--scene`` (implied when ``IN``
 is a scene) the points are aligned to the scene's training cameras and normalized to its training
 frame, exactly as for training; without it they stay in the source frame and the voxel size and
@@ -47,7 +47,7 @@ class PPMCommand(PPMSettings):
             if found is None:
                 raise PointSourceError(
                     f"{source}: the scene has no point source (sparse/0, sparse, colmap_sparse/0, points.ply) -- "
-                    "pass a point file, or train with --pipeline.model.init.points auto to triangulate"
+                    "pass a point file, or train with --pipeline.init.points auto to triangulate"
                 )
             source = found
         cloud = load_points(source)

@@ -41,7 +41,7 @@ MIN_SEED_POINTS = 4
 
 @dataclass
 class PPMSettings:
-    """Alignment and PPM parameters, shared by ``--pipeline.model.init`` and ``naka-gs-ppm``."""
+    """Alignment and PPM parameters, shared by ``--pipeline.init`` and ``naka-gs-ppm``."""
 
     align: Literal["sim3", "rigid", "none"] = "sim3"
     """Map the source frame onto the training cameras by its camera centres; ``none``: the points
@@ -67,7 +67,7 @@ class PPMSettings:
 
 @dataclass
 class PointInitConfig(PPMSettings):
-    """Where the Gaussians start (``--pipeline.model.init.*``)."""
+    """Where the Gaussians start (``--pipeline.init.*``)."""
 
     points: str = "auto"
     """``auto``: the scene's own points (sparse/0, sparse, colmap_sparse/0, points.ply), else
@@ -131,7 +131,7 @@ def align_cloud(
         return cloud.xyz, {"mode": "none"}
     if mode not in ("sim3", "rigid"):
         raise AlignmentError(f"align must be sim3, rigid or none, got {mode!r}")
-    fix = "pass --pipeline.model.init.align none if the points are already in the transforms' world frame"
+    fix = "pass --pipeline.init.align none if the points are already in the transforms' world frame"
     if not cloud.cameras:
         raise AlignmentError(f"{cloud.source}: no camera centres to align with -- {fix}")
     src_names = list(cloud.cameras)
@@ -315,7 +315,7 @@ def resolve_seed_points(
     Logs one line saying which source was used and how many points it produced.
     """
     if init.points == "random":
-        return _random("requested: --pipeline.model.init.points random")
+        return _random("requested: --pipeline.init.points random")
     path: Optional[Path] = None
     if init.points == "auto":
         path = find_scene_source(frame.scene)
@@ -326,7 +326,7 @@ def resolve_seed_points(
         path = Path(init.points).expanduser()
         if not path.exists():
             raise PointSourceError(
-                f"{path}: --pipeline.model.init.points not found -- give a .ply, a COLMAP model or VGGT folder, "
+                f"{path}: --pipeline.init.points not found -- give a .ply, a COLMAP model or VGGT folder, "
                 "'auto', 'triangulate' or 'random'"
             )
     if path is not None:
