@@ -1,11 +1,15 @@
 """naka-gs: low-light 3D Gaussian Splatting (Naka-GS) as a nerfstudio method plugin.
 
-Data flows images -> :mod:`enhance` -> (points) -> :mod:`model` -> eval, with no back-edges:
+Layers, bottom to top; a module imports only its own layer and those below (``tests/test_import_graph.py``):
 
-- :mod:`naka_gs_plugin.data`: the ``lowlight-data`` dataparser and the low-light datamanager;
-- :mod:`naka_gs_plugin.enhance`: Naka-Rushton pre-enhancement (and, later, the correction net);
-- :mod:`naka_gs_plugin.model`: the splatfacto-derived model and its CPU rasterizer;
-- :mod:`naka_gs_plugin.config`: the ``naka-gs`` method wiring them together (kept import-light).
+- helpers: :mod:`.cpu` (thread caps), :mod:`.progress`, :mod:`.metrics`, :mod:`.sheet`;
+- :mod:`naka_gs_plugin.data`: the ``lowlight-data`` dataparser, the image reader, the cache, safe writes;
+- :mod:`naka_gs_plugin.enhance`: Naka-Rushton pre-enhancement and the chroma-correction network;
+- :mod:`naka_gs_plugin.points`: point sources, alignment, PPM and seeding;
+- :mod:`naka_gs_plugin.model`: the splatfacto-derived model and its CPU rasterizers;
+- side by side: :mod:`naka_gs_plugin.sim` (the low-light scene simulator) and the method's wiring (the
+  low-light datamanager, :mod:`.pipeline`, :mod:`.trainer`, :mod:`.config`, which is kept import-light);
+- console scripts (``*.cli``, :mod:`.process_data`, :mod:`.demo`) and :mod:`naka_gs_plugin.bench`.
 
 Importing the package registers numpy's scalar types as safe globals for ``torch.load``: torch >= 2.6
 loads with ``weights_only=True`` and nerfstudio 1.1.5 writes ``np.float64`` learning rates into its

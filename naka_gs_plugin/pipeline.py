@@ -26,9 +26,9 @@ import torch
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
 from torch.cuda.amp.grad_scaler import GradScaler
 
+from naka_gs_plugin.data.cache import content_hash
 from naka_gs_plugin.data.lowlight_datamanager import LowLightDatamanager, LowLightDatamanagerConfig
 from naka_gs_plugin.data.lowlight_dataparser import read_split
-from naka_gs_plugin.enhance.pipeline import content_hash
 from naka_gs_plugin.model.naka_gs_model import NakaGSModelConfig
 from naka_gs_plugin.points.seeding import (
     PointInitConfig,

@@ -43,9 +43,9 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 from torch import Tensor
 
+from naka_gs_plugin.data.cache import default_cache_dir
 from naka_gs_plugin.data.images import IMAGE_SUFFIXES, ImageReadError, read_raw, to_rgb01
 from naka_gs_plugin.data.safe_io import atomic_write, usable_cache_dir
-from naka_gs_plugin.enhance.pipeline import default_cache_dir
 
 MAX_AUTO_RESOLUTION = 1600
 """Auto downscale picks the smallest power of two bringing the longer side to at most this (as nerfstudio-data)."""

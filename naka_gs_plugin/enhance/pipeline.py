@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,6 +25,7 @@ from nerfstudio.configs.base_config import InstantiateConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 
+from naka_gs_plugin.data.cache import content_hash, default_cache_dir
 from naka_gs_plugin.data.safe_io import atomic_write, usable_cache_dir
 from naka_gs_plugin.cpu import fit_threads
 from naka_gs_plugin.enhance.correction import (
@@ -43,14 +43,6 @@ from naka_gs_plugin.progress import StageProgress
 
 CACHE_VERSION = 1
 """Bump when the enhancement maths change, so stale cache entries are never read."""
-
-
-def default_cache_dir() -> Path:
-    """``$NAKA_GS_CACHE``, else ``$XDG_CACHE_HOME/naka-gs``, else ``~/.cache/naka-gs``; when that
-    cannot be written (read-only, a file, disk full) a private temporary folder, with one warning."""
-    if os.environ.get("NAKA_GS_CACHE"):
-        return usable_cache_dir(Path(os.environ["NAKA_GS_CACHE"]))
-    return usable_cache_dir(Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "naka-gs")
 
 
 @dataclass
@@ -107,14 +99,6 @@ def scene_sigma(images: Sequence[Tensor]) -> float:
     total = sum(float(to_float01(im).sum(dtype=torch.float64)) for im in images)
     count = sum(to_float01(im).numel() for im in images)
     return max(SIGMA_FLOOR, total / max(count, 1))
-
-
-def content_hash(image: Tensor) -> str:
-    """SHA-1 of an image tensor's shape, dtype and bytes."""
-    arr = np.ascontiguousarray(image.detach().cpu().numpy())
-    h = hashlib.sha1(f"{arr.shape}{arr.dtype}".encode())
-    h.update(arr.tobytes())
-    return h.hexdigest()
 
 
 def to_float01(image: Tensor) -> Float[Tensor, "H W 3"]:

@@ -22,13 +22,13 @@ import torch
 from jaxtyping import Float, UInt8
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from naka_gs_plugin.data.cache import default_cache_dir
 from naka_gs_plugin.data.lowlight_dataparser import (
     LowLightDataParserConfig,
     normalization,
     read_split,
     to_normalized_frame,
 )
-from naka_gs_plugin.enhance.pipeline import default_cache_dir
 from naka_gs_plugin.points.align import AlignmentError, apply_sim3, match_names, umeyama
 from naka_gs_plugin.points.ppm import run_ppm
 from naka_gs_plugin.points.sources import PointCloud, PointSourceError, find_scene_source, load_points, source_files
