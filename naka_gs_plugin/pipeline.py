@@ -49,6 +49,14 @@ class NakaGSPipelineConfig(VanillaPipelineConfig):
     init: PointInitConfig = field(default_factory=PointInitConfig)
     """Seed points of the Gaussians (source, alignment, PPM)."""
 
+    def __setstate__(self, state: Dict[str, Any]) -> None:
+        """Load ``config.yml`` files of runs trained before ``init`` moved here from the model config
+        (``ns-eval``/``ns-viewer``/``ns-export`` on an older run): take it from the model."""
+        if "init" not in state:
+            model_state = getattr(state.get("model"), "__dict__", {})
+            state["init"] = model_state.pop("init", None) or PointInitConfig()
+        self.__dict__.update(state)
+
 
 class NakaGSPipeline(VanillaPipeline):
     """See the module docstring."""

@@ -38,3 +38,20 @@ def test_method_config_is_cpu_safe_and_light():
     )
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert res.returncode == 0, res.stderr[-2000:]
+
+
+def test_config_of_a_run_with_init_on_the_model_still_loads():
+    """config.yml files written while ``init`` lived on the model config load with it on the pipeline."""
+    import yaml
+
+    from naka_gs_plugin.pipeline import NakaGSPipelineConfig
+    from naka_gs_plugin.points.seeding import PointInitConfig
+
+    old = NakaGSPipelineConfig()
+    del old.init
+    old.model.init = PointInitConfig(points="random")
+    loaded = yaml.load(yaml.dump(old), Loader=yaml.Loader)
+    assert loaded.init.points == "random"
+    assert not hasattr(loaded.model, "init")
+    fresh = yaml.load(yaml.dump(NakaGSPipelineConfig(init=PointInitConfig(points="random"))), Loader=yaml.Loader)
+    assert fresh.init.points == "random"
