@@ -10,7 +10,6 @@ from __future__ import annotations
 import time
 from typing import Dict, Optional
 
-from nerfstudio.utils.rich_utils import CONSOLE
 from rich.console import Console
 from rich.progress import (
     BarColumn,
@@ -27,13 +26,18 @@ class StageProgress(Progress):
     """``rich.progress.Progress`` with the plugin's columns and plain log lines off a terminal."""
 
     def __init__(self, console: Optional[Console] = None, log_every: float = 30.0) -> None:
+        """``console``: default nerfstudio's, so that the bar and nerfstudio's log lines do not garble each other."""
+        if console is None:
+            from nerfstudio.utils.rich_utils import CONSOLE  # lazy: callers with their own console need no nerfstudio
+
+            console = CONSOLE
         super().__init__(
             TextColumn("[progress.description]{task.description}"),
             BarColumn(),
             MofNCompleteColumn(),
             TimeElapsedColumn(),
             TimeRemainingColumn(),
-            console=console or CONSOLE,
+            console=console,
             transient=False,
         )
         self.log_every = log_every

@@ -4,13 +4,13 @@
 #      (outputs/correction-loo/X/best.pt; ~40 min each on a 2-core CPU);
 #   2. the 2D score of those weights on X's test views (naka-gs-eval-correction, low -> enhanced vs
 #      normal light): outputs/correction-loo/X/eval_2d.json;
-#   3. the 3D grid (default: configs/bench/lom-holdout.yaml): ns-train naka-gs on X, scored on X's test
+#   3. the 3D grid (default: naka_gs_plugin/configs/bench/lom-holdout.yaml): ns-train naka-gs on X, scored on X's test
 #      views at each milestone; table and plots in outputs/bench/<grid name>/.
 # Resumable: finished weights, 2D scores and grid runs are kept. Usage:
 #   bash scripts/lom_holdout.sh [--grid FILE] [--scenes "bike sofa"] [recipe flags for naka-gs-train-correction ...]
 set -euo pipefail
 cd "$(dirname "$0")/.."
-grid=configs/bench/lom-holdout.yaml
+grid=naka_gs_plugin/configs/bench/lom-holdout.yaml
 scenes="bike chair shrub sofa"
 recipe=()
 while [ $# -gt 0 ]; do
@@ -24,7 +24,7 @@ bash scripts/setup.sh
 for scene in $scenes; do
   weights=outputs/correction-loo/$scene
   if [ ! -f "$weights/best.pt" ]; then
-    .venv/bin/naka-gs-train-correction --config configs/correction/default.yaml --hold-out "$scene" \
+    .venv/bin/naka-gs-train-correction --config naka_gs_plugin/configs/correction/default.yaml --hold-out "$scene" \
       --output-dir "$weights" "${recipe[@]}"
   fi
   if [ ! -f "$weights/eval_2d.json" ]; then

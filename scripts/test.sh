@@ -1,8 +1,12 @@
 #!/usr/bin/env bash
-# Set up (if needed) and run the whole test suite on CPU. Extra arguments go to pytest.
+# Set up (if needed) and run the whole test suite on CPU; extra arguments go to pytest. The full run
+# (no arguments, as CI) then checks a non-editable install (scripts/check_install.sh, < 2 min).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 # torch.compile (nerfstudio's get_viewmat) costs ~20 s per process on CPU and buys nothing in tests.
 export TORCHDYNAMO_DISABLE=1
-exec .venv/bin/python -m pytest -q "$@"
+.venv/bin/python -m pytest -q "$@"
+if [ $# -eq 0 ]; then
+  bash scripts/check_install.sh
+fi

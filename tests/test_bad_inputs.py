@@ -26,10 +26,10 @@ from naka_gs_plugin.data.images import ImageReadError, read_rgb
 from naka_gs_plugin.data.lowlight_datamanager import LowLightDatamanagerConfig
 from naka_gs_plugin.data.lowlight_dataparser import LowLightDataError, LowLightDataParserConfig, downscaled_copy
 from naka_gs_plugin.data.safe_io import MARKER, UnsafeOutputError, atomic_write
-from naka_gs_plugin.enhance import cli as enhance_cli
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
-from naka_gs_plugin.process_data import ProcessData, ProcessDataError
-from naka_gs_plugin.sim import cli as sim_cli
+from naka_gs_plugin.scripts import enhance as enhance_cli
+from naka_gs_plugin.scripts import sim as sim_cli
+from naka_gs_plugin.scripts.process_data import ProcessData, ProcessDataError
 from tests.test_sim import write_spec
 
 NAKA = EnhanceConfig(correction="none")
@@ -230,7 +230,7 @@ def pd_failed_run_keeps_old_output(env):
 
 
 def pd_console_exit(env):
-    from naka_gs_plugin.process_data import entrypoint
+    from naka_gs_plugin.scripts.process_data import entrypoint
 
     p = captures(env)
     argv = ["naka-gs-process-data", "--data", str(p / "night1"), "--output-dir", str(p), "--overwrite"]
@@ -239,32 +239,32 @@ def pd_console_exit(env):
 
 def enh_out_is_the_images_folder(env):
     s = env.scene()
-    return lambda: enhance_cli.EnhanceCLI(scene=s, out=s / "train", enhance=NAKA).main(), [s]
+    return lambda: enhance_cli.Enhance(scene=s, out=s / "train", enhance=NAKA).main(), [s]
 
 
 def enh_out_is_the_scene(env):
     s = env.scene()
-    return lambda: enhance_cli.EnhanceCLI(scene=s, out=s, enhance=NAKA).main(), [s]
+    return lambda: enhance_cli.Enhance(scene=s, out=s, enhance=NAKA).main(), [s]
 
 
 def enh_out_inside_the_images_folder(env):
     s = env.scene()
-    return lambda: enhance_cli.EnhanceCLI(scene=s, out=s / "train" / "enh", enhance=NAKA).main(), [s]
+    return lambda: enhance_cli.Enhance(scene=s, out=s / "train" / "enh", enhance=NAKA).main(), [s]
 
 
 def enh_out_foreign_nonempty(env):
     s, other = env.scene(), env.tmp / "mine"
     other.mkdir()
     (other / "0000.png").write_bytes(b"user's picture")
-    return lambda: enhance_cli.EnhanceCLI(scene=s, out=other, enhance=NAKA).main(), [s, other]
+    return lambda: enhance_cli.Enhance(scene=s, out=other, enhance=NAKA).main(), [s, other]
 
 
 def enh_rerun_replaces_own_output(env):
     s, out = env.scene(), env.tmp / "enh"
 
     def action():
-        enhance_cli.EnhanceCLI(scene=s, out=out, enhance=NAKA, sheet=False).main()
-        return enhance_cli.EnhanceCLI(scene=s, out=out, enhance=NAKA, sheet=False).main()
+        enhance_cli.Enhance(scene=s, out=out, enhance=NAKA, sheet=False).main()
+        return enhance_cli.Enhance(scene=s, out=out, enhance=NAKA, sheet=False).main()
 
     return action, [s]
 
@@ -523,17 +523,17 @@ def sim_out_contains_spec(env):
     folder = env.tmp / "specs"
     folder.mkdir()
     spec = write_spec(folder, [])
-    return lambda: sim_cli.main(sim_cli.SimArgs(spec=spec, out=folder)), [folder]
+    return lambda: sim_cli.Sim(spec=spec, out=folder).main(), [folder]
 
 
 def sim_rerun_replaces_own_scene(env):
     spec, out = write_spec(env.tmp, []), env.tmp / "scene"
 
     def action():
-        sim_cli.main(sim_cli.SimArgs(spec=spec, out=out))
+        sim_cli.Sim(spec=spec, out=out).main()
         (out / "sparse").mkdir()  # e.g. a COLMAP model that naka-gs-sim did not write
         (out / "sparse" / "cameras.bin").write_bytes(b"x")
-        sim_cli.main(sim_cli.SimArgs(spec=spec, out=out))
+        sim_cli.Sim(spec=spec, out=out).main()
 
     return action, [spec]
 
@@ -542,10 +542,10 @@ def sim_rerun_replaces_own_scene_cleanly(env):
     spec, out = write_spec(env.tmp, []), env.tmp / "scene"
 
     def action():
-        sim_cli.main(sim_cli.SimArgs(spec=spec, out=out))
+        sim_cli.Sim(spec=spec, out=out).main()
         (out / "train" / "stale.png").write_bytes((out / "train_gt" / "0000.png").read_bytes())
         safe_io.write_marker(out, "naka-gs-sim")  # a file of an earlier (bigger) scene of ours
-        return sim_cli.main(sim_cli.SimArgs(spec=spec, out=out))
+        return sim_cli.Sim(spec=spec, out=out).main()
 
     return action, [spec]
 

@@ -284,10 +284,10 @@ def test_datamanager_corrects_training_images_only(toy_scene, tmp_path):
 def test_bench_times_modes_in_fresh_processes_and_writes_the_sheet(toy_scene, tmp_path):
     from PIL import Image
 
-    from naka_gs_plugin.bench.correction_bench import CorrectionBench
+    from naka_gs_plugin.scripts.bench_correction import BenchCorrection
 
     views = tuple(sorted((toy_scene / "train").glob("*.png"))[:2])
-    bench = CorrectionBench(
+    bench = BenchCorrection(
         image=views[0],
         weights=str(save_correction(_net(SMALL), tmp_path / "net.pt")),
         modes=("lean-f32", "lean"),

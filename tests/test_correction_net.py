@@ -37,8 +37,8 @@ from naka_gs_plugin.enhance.correction_train import (
     validate,
 )
 from naka_gs_plugin.enhance.naka import naka_enhance
+from naka_gs_plugin.shipped import CONFIGS
 
-REPO = Path(__file__).resolve().parents[1]
 TINY = ChromaGuidedConfig(widths=(8, 8, 8, 8), enc_residual=(1, 1, 1))
 
 
@@ -302,7 +302,7 @@ def test_hold_out_leaves_a_scene_out_of_training_and_validation(tmp_path):
 
 
 def test_recipe_yaml_loads_and_unknown_keys_fail(tmp_path):
-    cfg = config_from_yaml(REPO / "configs/correction/default.yaml")
+    cfg = config_from_yaml(CONFIGS / "correction/default.yaml")
     assert cfg.crop > 0 and cfg.lol and len(cfg.lom) == 4 and isinstance(cfg.lom[0], Path)
     bad = tmp_path / "bad.yaml"
     bad.write_text("epochz: 3\n")
@@ -321,7 +321,7 @@ def test_gray_world_equalises_channel_means():
 
 
 def test_eval_cli_scores_methods_and_neutral_net_equals_naka(tmp_path):
-    from naka_gs_plugin.bench.correction_eval import EvalConfig
+    from naka_gs_plugin.scripts.eval_correction import EvalCorrection
     from naka_gs_plugin.enhance.checkpoint import save_correction
 
     _write_pairs(tmp_path / "pairs", "eval", 2, np.random.default_rng(2))
@@ -331,7 +331,7 @@ def test_eval_cli_scores_methods_and_neutral_net_equals_naka(tmp_path):
         torch.nn.init.zeros_(head.bias)
     weights = save_correction(model, tmp_path / "neutral.pt", half=False)
     out = tmp_path / "eval.json"
-    result = EvalConfig(lol=(tmp_path / "pairs",), weights=weights, modes=("exact",), output=out).main()
+    result = EvalCorrection(lol=(tmp_path / "pairs",), weights=weights, modes=("exact",), output=out).main()
     means = json.loads(out.read_text())["datasets"]["LOL pairs eval"]["means"]
     assert set(means) == {"input", "naka", "naka+grayworld", "naka+net (exact)"}
     assert means["naka+net (exact)"]["psnr_all"] == pytest.approx(means["naka"]["psnr_all"], abs=1e-3)

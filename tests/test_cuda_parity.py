@@ -22,9 +22,9 @@ from naka_gs_plugin.bench.cuda_parity import (
     SYNTHETIC,
     ParityConfig,
     compare,
-    main,
     make_scene,
     render_all,
+    run,
     run_parity,
     scene_from_checkpoint,
     torch_renderer,
@@ -42,7 +42,7 @@ def test_standin_cpu_fast_matches_torch_within_float32_noise(tmp_path):
     pytest.importorskip("numba")
     ref_file = tmp_path / "ref.pt"
     cfg = ParityConfig(reference="torch", scenes=("sh2-2cam-aa",), save_reference=ref_file, out_dir=tmp_path)
-    result, table = main(cfg)
+    result, table = run(cfg)
     assert result["reference"] == "torch" and result["unavailable"] == {}
     assert set(result["cases"]) == {"sh2-2cam-aa", f"sh2-2cam-aa/o<={EXACT_PAIRS_OPACITY}"}
     for name, case in result["cases"].items():

@@ -11,7 +11,7 @@ import naka_gs_plugin.enhance.pipeline as pipeline_mod
 from naka_gs_plugin.data.images import read_rgb, read_stored
 from naka_gs_plugin.data.lowlight_datamanager import LowLightDatamanagerConfig, MissingGroundTruthError
 from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig
-from naka_gs_plugin.enhance.cli import EnhanceCLI
+from naka_gs_plugin.scripts.enhance import Enhance
 from naka_gs_plugin.enhance.naka import naka_enhance
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig
 
@@ -121,7 +121,7 @@ def test_enhance_cli_fills_the_training_cache(toy_scene, tmp_path):
         meta = json.loads(meta_path.read_text())
         meta.update(k1=0.05, p1=0.002)  # undistortion changes the pixels the enhancer sees
         meta_path.write_text(json.dumps(meta))
-    written = EnhanceCLI(scene=scene, out=tmp_path / "enhanced", sheet=False).main()
+    written = Enhance(scene=scene, out=tmp_path / "enhanced", sheet=False).main()
     assert len(written) == 8 and all(p.is_file() for p in written)
 
     dm = LowLightDatamanagerConfig(dataparser=LowLightDataParserConfig(data=scene)).setup(device="cpu")

@@ -3,7 +3,7 @@
 import json
 import math
 
-from naka_gs_plugin.demo import DEFAULT_SPEC, Demo
+from naka_gs_plugin.scripts.demo import DEFAULT_SPEC, Demo
 
 TINY_SPEC = """
 name: tiny-dark-noisy

@@ -10,10 +10,9 @@ PACKAGE = Path(__file__).resolve().parents[1] / "naka_gs_plugin"
 
 LAYERS = ("helpers", "data", "enhance", "points", "model", "sim and method", "scripts and benches")
 """Bottom to top (``naka_gs_plugin/__init__.py`` describes each)."""
-HELPERS = {"cpu", "progress", "metrics", "sheet"}
+HELPERS = {"cpu", "progress", "metrics", "sheet", "shipped"}
 METHOD = {"data.lowlight_datamanager", "pipeline", "trainer", "config"}
 """The method's wiring, side by side with the simulator above the model."""
-SCRIPTS = {"process_data", "demo"}
 
 
 def layer(module: str) -> int:
@@ -21,7 +20,7 @@ def layer(module: str) -> int:
     top = module.split(".")[0]
     if module == "" or module in HELPERS:
         return 0
-    if module in SCRIPTS or top == "bench" or module.endswith(".cli"):
+    if top in ("scripts", "bench"):
         return 6
     if module in METHOD or top == "sim":
         return 5
@@ -66,3 +65,46 @@ def test_no_relative_imports():
         if any(isinstance(n, ast.ImportFrom) and n.level for n in ast.walk(ast.parse(path.read_text())))
     ]
     assert not relative, relative
+
+
+def test_console_scripts_live_in_scripts():
+    """Every ``[project.scripts]`` entry is ``naka-gs-<name> = naka_gs_plugin.scripts.<name>:entrypoint`` and its
+    module holds the dataclass ``<Name>`` with ``main()`` (the naming scheme of ``naka_gs_plugin/scripts``)."""
+    import dataclasses
+    import importlib
+    import tomllib
+
+    pyproject = tomllib.loads((PACKAGE.parent / "pyproject.toml").read_text())
+    entries = pyproject["project"]["scripts"]
+    wrong = []
+    for name, target in entries.items():
+        stem = name.removeprefix("naka-gs-").replace("-", "_")
+        if target != f"naka_gs_plugin.scripts.{stem}:entrypoint":
+            wrong.append(f"{name} = {target}")
+            continue
+        module = importlib.import_module(f"naka_gs_plugin.scripts.{stem}")
+        cls = getattr(module, "".join(part.title() for part in stem.split("_")), None)
+        if not (dataclasses.is_dataclass(cls) and callable(getattr(cls, "main", None))):
+            wrong.append(f"{name}: no dataclass {stem.title().replace('_', '')} with main() in scripts/{stem}.py")
+    modules = {p.stem for p in (PACKAGE / "scripts").glob("*.py")} - {"__init__"}
+    orphans = modules - {n.removeprefix("naka-gs-").replace("-", "_") for n in entries}
+    assert not wrong and not orphans, (wrong, orphans)
+
+
+def test_gpu_side_modules_import_without_nerfstudio():
+    """The parity harness, cpu-fast and the correction trainer run on a GPU machine that has no nerfstudio."""
+    import subprocess
+    import sys
+
+    block = (
+        "import sys\n"
+        "class Block:\n"
+        "    def find_spec(self, name, path=None, target=None):\n"
+        "        if name.split('.')[0] == 'nerfstudio':\n"
+        "            raise ImportError(name)\n"
+        "sys.meta_path.insert(0, Block())\n"
+        "import naka_gs_plugin.scripts.cuda_parity, naka_gs_plugin.scripts.train_correction\n"
+        "import naka_gs_plugin.model.rasterize_cpu_fast\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", block], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-2000:]

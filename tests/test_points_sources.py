@@ -16,7 +16,7 @@ from plyfile import PlyData, PlyElement
 
 from naka_gs_plugin.points import seeding
 from naka_gs_plugin.points.align import AlignmentError, apply_sim3
-from naka_gs_plugin.points.cli import PPMCommand, entrypoint, write_ply
+from naka_gs_plugin.scripts.ppm import Ppm, entrypoint
 from naka_gs_plugin.points.seeding import (
     PointInitConfig,
     TrainingFrame,
@@ -31,6 +31,7 @@ from naka_gs_plugin.points.sources import (
     load_colmap,
     load_ply,
     load_points,
+    write_ply,
 )
 from naka_gs_plugin.sim.views import look_at
 
@@ -338,7 +339,7 @@ def test_resolve_seed_points_triangulation_fallback(tmp_path):
 def test_ppm_cli_writes_ply_and_summary(tmp_path, monkeypatch, capsys):
     scene, world, _, _ = _sim3_scene(tmp_path, n_points=2000)
     out = tmp_path / "o" / "clean.ply"
-    summary = PPMCommand(input=scene, out=out, min_points=10).main()
+    summary = Ppm(input=scene, out=out, min_points=10).main()
     written = load_ply(out)
     assert len(written) == summary["final_count"] == summary["ppm"]["final_count"] and written.rgb is not None
     on_disk = json.loads(out.with_suffix(".json").read_text())
@@ -348,7 +349,7 @@ def test_ppm_cli_writes_ply_and_summary(tmp_path, monkeypatch, capsys):
     frame = TrainingFrame.from_scene(scene)
     assert np.abs(written.xyz).max() <= np.abs(frame.normalize(world)).max() + 1e-4
     # no scene: source frame, no alignment
-    raw = PPMCommand(input=scene / "points.ply", out=tmp_path / "raw.ply", ppm=False).main()
+    raw = Ppm(input=scene / "points.ply", out=tmp_path / "raw.ply", ppm=False).main()
     assert "alignment" not in raw and raw["final_count"] == 2000
     monkeypatch.setattr("sys.argv", ["naka-gs-ppm", str(tmp_path / "missing.ply"), "--out", str(tmp_path / "x.ply")])
     with pytest.raises(SystemExit) as exit_info:

@@ -22,7 +22,7 @@ from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig
 from naka_gs_plugin.points.align import match_names
 from naka_gs_plugin.points.sfm import compare_poses
-from naka_gs_plugin.process_data import ProcessData, ProcessDataError, TooFewRegisteredError
+from naka_gs_plugin.scripts.process_data import ProcessData, ProcessDataError, TooFewRegisteredError
 from tests.test_sfm import dark_capture
 
 N_VIEWS = 16

@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import sys
-
 import pytest
 from rich.console import Console
 
 from naka_gs_plugin.bench import rasterizer_bench as bench
+from naka_gs_plugin.scripts.bench_raster import entrypoint
 
 
 def _case(fwd_bwd: float, **extra) -> dict:
@@ -38,10 +37,9 @@ def test_extrapolated_dense_rows_are_starred():
     assert "2.00*" in text and "20x" in text
 
 
-def test_negative_dense_budget_is_refused(monkeypatch):
-    monkeypatch.setattr(sys, "argv", ["naka-gs-bench-raster", "--dense-budget", "-5"])
+def test_negative_dense_budget_is_refused():
     with pytest.raises(SystemExit, match="--dense-budget must be >= 0"):
-        bench.main()
+        entrypoint(["--dense-budget", "-5"])
 
 
 def test_dense_extrapolation_refuses_noise():

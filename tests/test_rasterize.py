@@ -12,6 +12,7 @@ from gsplat.cuda._torch_impl import (
     _spherical_harmonics,
 )
 
+from naka_gs_plugin.bench.cuda_parity import make_scene
 from naka_gs_plugin.model.projection import (
     pixel_bounds,
     project_gaussians,
@@ -27,34 +28,6 @@ from naka_gs_plugin.model.rasterize import (
 from naka_gs_plugin.model.rasterize_dense import rasterization_dense, rasterize_to_pixels_dense
 
 F64 = torch.float64
-
-
-def make_scene(n, width, height, n_cams=1, sh_degree=None, seed=0, dtype=F64, scale=0.04):
-    """Random Gaussians in front of ``n_cams`` nearby cameras; returns rasterization's inputs."""
-    gen = torch.Generator().manual_seed(seed)
-    focal = 0.8 * width
-    z = 2.0 + 4.0 * torch.rand(n, generator=gen, dtype=dtype)
-    x = (torch.rand(n, generator=gen, dtype=dtype) - 0.5) * 1.2 * width / focal * z
-    y = (torch.rand(n, generator=gen, dtype=dtype) - 0.5) * 1.2 * height / focal * z
-    if sh_degree is None:
-        colors = torch.rand(n, 3, generator=gen, dtype=dtype)
-    else:
-        colors = 0.4 * torch.randn(n, (sh_degree + 1) ** 2, 3, generator=gen, dtype=dtype)
-    viewmats = torch.eye(4, dtype=dtype).repeat(n_cams, 1, 1)
-    viewmats[1:, :3, 3] = 0.1 * torch.randn(n_cams - 1, 3, generator=gen, dtype=dtype)
-    k = torch.tensor([[focal, 0, 0.5 * width], [0, focal, 0.5 * height], [0, 0, 1]], dtype=dtype)
-    return dict(
-        means=torch.stack([x, y, z], dim=1),
-        quats=torch.randn(n, 4, generator=gen, dtype=dtype),
-        scales=scale * torch.exp(0.5 * torch.randn(n, 3, generator=gen, dtype=dtype)),
-        opacities=torch.sigmoid(2.0 * torch.randn(n, generator=gen, dtype=dtype)),
-        colors=colors,
-        viewmats=viewmats,
-        Ks=k.repeat(n_cams, 1, 1),
-        width=width,
-        height=height,
-        sh_degree=sh_degree,
-    )
 
 
 def render_both(scene, **kwargs):

@@ -14,7 +14,8 @@ import yaml
 
 from naka_gs_plugin.data.images import read_rgb
 from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig
-from naka_gs_plugin.sim import cli, stats
+from naka_gs_plugin.scripts import sim as cli
+from naka_gs_plugin.sim import stats
 from naka_gs_plugin.sim.effects import sensor
 from naka_gs_plugin.sim.generate import build_scene, generate
 from naka_gs_plugin.sim.spec import Noise, SimSpecError, load_spec, shipped_specs
@@ -260,7 +261,7 @@ def test_shipped_specs_load(monkeypatch):
 
 def test_shipped_capture_spec_generates(tmp_path, monkeypatch):
     monkeypatch.chdir(REPO)
-    scene = cli.main(cli.SimArgs(spec=REPO / "configs/scenes/lom-sofa-dark.yaml", out=tmp_path / "sofa"))
+    scene = cli.Sim(spec=Path("configs/scenes/lom-sofa-dark.yaml"), out=tmp_path / "sofa").main()
     outputs = LowLightDataParserConfig(data=scene, downscale_factor=1).setup().get_dataparser_outputs("train")
     assert len(outputs.image_filenames) == 16
     train = train_images(scene)

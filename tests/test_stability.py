@@ -25,13 +25,13 @@ from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
 from naka_gs_plugin.model import rasterize as torch_raster
 from naka_gs_plugin.points.align import AlignmentError, umeyama
 from naka_gs_plugin.points.ppm import run_ppm
+from naka_gs_plugin.shipped import CONFIGS
 
 try:
     from naka_gs_plugin.model import rasterize_cpu_fast as fast_raster
 except ImportError:  # numba missing: the torch path is still covered
     fast_raster = None
 
-REPO = Path(__file__).resolve().parents[1]
 
 # ------------------------------------------------------------------------------------ images
 def _one_bright() -> torch.Tensor:
@@ -283,7 +283,7 @@ def _night_lamps(tmp_path: Path) -> Path:
     from naka_gs_plugin.sim.generate import generate
     from naka_gs_plugin.sim.spec import load_spec
 
-    return generate(load_spec(REPO / "configs" / "scenes" / "night-lamps.yaml"), tmp_path / "night-lamps")
+    return generate(load_spec(CONFIGS / "scenes" / "night-lamps.yaml"), tmp_path / "night-lamps")
 
 
 @pytest.mark.parametrize("scene", ["night-lamps", "all-black"])

@@ -15,7 +15,8 @@ import numpy as np
 import torch
 
 from naka_gs_plugin.data.images import read_rgb
-from naka_gs_plugin.enhance.correction import DEFAULT_WEIGHTS, CorrectionRunner, load_correction
+from naka_gs_plugin.enhance.checkpoint import DEFAULT_WEIGHTS, load_correction
+from naka_gs_plugin.enhance.correction import CorrectionRunner
 from naka_gs_plugin.enhance.naka import naka_enhance
 
 torch.set_grad_enabled(False)

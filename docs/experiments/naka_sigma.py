@@ -8,7 +8,8 @@ of every 10th RealX3D training view at 1/4 size. Run from the repository root:
 import json, sys, glob, numpy as np, torch, kornia
 from pathlib import Path
 torch.set_grad_enabled(False)
-from naka_gs_plugin.enhance.correction import CorrectionRunner, load_correction, DEFAULT_WEIGHTS
+from naka_gs_plugin.enhance.checkpoint import DEFAULT_WEIGHTS, load_correction
+from naka_gs_plugin.enhance.correction import CorrectionRunner
 from naka_gs_plugin.enhance.naka import naka_rushton, stretch_stats, linear_stretch
 from naka_gs_plugin.data.images import read_rgb
 D = Path(__file__).resolve().parents[3] / "shared" / "data"

@@ -19,26 +19,20 @@ from __future__ import annotations
 import json
 import os
 import resource
-import subprocess
 import sys
-import tempfile
 import time
-from dataclasses import dataclass
 from pathlib import Path
-from typing import List, Optional, Sequence, Tuple
+from typing import List, Sequence, Tuple
 
 import numpy as np
-import tyro
 
-from naka_gs_plugin.bench.machine import describe_cpu
-from naka_gs_plugin.enhance.correction import DEFAULT_MODE, MODES
 
 DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 BORDER = 16
 """Pixels excluded at each image border for the interior difference."""
 
 
-def _net(weights: str):
+def net_for(weights: str):
     import torch
 
     from naka_gs_plugin.enhance.checkpoint import DEFAULT_WEIGHTS, load_correction
@@ -50,7 +44,7 @@ def _net(weights: str):
     return load_correction(DEFAULT_WEIGHTS if weights == "default" else weights)
 
 
-def _pair(path: Path):
+def low_and_naka(path: Path):
     """(low, naka) as float32 ``[1, 3, H, W]`` sRGB [0, 1] (Naka: reference parameters, per image)."""
     import torch
 
@@ -98,11 +92,11 @@ def run_child(
     from naka_gs_plugin.metrics import psnr
 
     torch.set_grad_enabled(False)
-    net = _net(weights)
+    net = net_for(weights)
     runner = CorrectionRunner(net, mode_name)
     result: dict = {"mode": mode_name, "resolved": resolve_mode(mode_name)}
     if timing:
-        low, naka = _pair(image)
+        low, naka = low_and_naka(image)
         if resolution_scale != 1.0:
             low, naka = (torch.nn.functional.interpolate(t, scale_factor=resolution_scale, mode="area") for t in (low, naka))
         runner(low[..., :64, :64], naka[..., :64, :64])  # warm-up (oneDNN primitive creation)
@@ -133,8 +127,8 @@ def run_child(
         torch.set_num_threads(1)  # scores only: one thread wastes no CPU spinning on a shared machine
         scores = []
         for name, low_path, gt_path in quality_pairs():
-            q_low, q_naka = _pair(low_path)
-            gt = _pair(gt_path)[0]
+            q_low, q_naka = low_and_naka(low_path)
+            gt = low_and_naka(gt_path)[0]
             if runner.mode.tile:
                 # Tiles equal the untiled forward with the same recorded statistics (the timing pass
                 # measures that at full size); on these small images tiling would only cost time.
@@ -148,148 +142,14 @@ def run_child(
     return result
 
 
-def _summary(scores: Sequence[dict], name: str) -> Tuple[float, float]:
+def set_means(scores: Sequence[dict], name: str) -> Tuple[float, float]:
     sel = [s for s in scores if s["set"] == name]
     return float(np.mean([s["psnr"] for s in sel])), float(np.mean([s["ssim"] for s in sel]))
 
 
-@dataclass
-class CorrectionBench:
-    """Time and peak memory per image for each correction inference mode (fresh process each)."""
-
-    image: Path = DATA / "realx3d" / "BlueHawaii" / "train" / "0001.JPG"
-    """Low-light test image (default: a 1764x1172 RealX3D view)."""
-    weights: str = "default"
-    """``default`` (shipped), a checkpoint path, or ``random`` (seeded random init: timing only)."""
-    modes: Tuple[str, ...] = ("auto",) + tuple(MODES)
-    """Modes timed (with ``exact``, the reference of every ratio and difference; empty: none)."""
-    resolution_scale: float = 1.0
-    """Resize the timed image by this factor first (area filter): 0.5 times a RealX3D view at 882x586."""
-    quality_modes: Tuple[str, ...] = tuple(MODES)
-    """Modes scored on the LOM test views and LOL eval15 against ground truth (empty: none)."""
-    threads: int = 2
-    """Threads (PyTorch intra-op and numba) of the timed runs."""
-    repeats: int = 1
-    """Timed runs per mode after the warm-up; the median wall and CPU seconds are reported."""
-    json_out: Optional[Path] = None
-    """Write all results here as JSON."""
-    sheet: Optional[Path] = None
-    """Also write a PNG sheet (rows: low, Naka, corrected in ``sheet_mode``) of ``sheet_views``."""
-    sheet_views: Tuple[Path, ...] = tuple(
-        DATA / "realx3d" / scene / "train" / "0001.JPG" for scene in ("BlueHawaii", "Cupcake", "Laboratory", "Popcorn")
+if __name__ == "__main__":  # internal: ``--child MODE IMAGE WEIGHTS OUT_DIR TIMING QUALITY THREADS REPEATS SCALE``
+    mode, image, weights, out_dir, timing, quality, threads, repeats, scale = sys.argv[2:11]
+    result = run_child(
+        mode, Path(image), weights, Path(out_dir), timing == "1", quality == "1", int(threads), int(repeats), float(scale)
     )
-    sheet_mode: str = DEFAULT_MODE
-    sheet_width: int = 440
-    """Width of each tile of the sheet, pixels."""
-
-    def write_sheet(self) -> Path:
-        """Low / Naka / corrected rows for ``sheet_views`` (each view downscaled to ``sheet_width``)."""
-        from PIL import Image
-
-        from naka_gs_plugin.enhance.correction import CorrectionRunner
-        from naka_gs_plugin.sheet import contact_sheet
-
-        runner = CorrectionRunner(_net(self.weights), self.sheet_mode)
-        cols = []
-        for view in self.sheet_views:
-            low, naka = _pair(view)
-            out = runner(low, naka)["enhanced"]
-            cols.append([t[0].permute(1, 2, 0).numpy() for t in (low, naka, out)])
-        rows = [[c[i] for c in cols] for i in range(3)]
-        self.sheet.parent.mkdir(parents=True, exist_ok=True)
-        Image.fromarray(contact_sheet(rows, max_width=self.sheet_width)).save(self.sheet)
-        print(f"wrote {self.sheet} (rows: low, Naka, corrected [{self.sheet_mode}])")
-        return self.sheet
-
-    def main(self) -> List[dict]:
-        if self.threads < 1 or self.repeats < 1:
-            raise ValueError(f"--threads and --repeats must be >= 1, got {self.threads} and {self.repeats}")
-        if not 0 < self.resolution_scale <= 1:
-            raise ValueError(f"--resolution-scale must be in (0, 1], got {self.resolution_scale}")
-        unknown = [m for m in self.modes + self.quality_modes if m != "auto" and m not in MODES]
-        if unknown:
-            raise ValueError(f"unknown mode(s) {unknown} in --modes/--quality-modes; choose auto or {sorted(MODES)}")
-        print(describe_cpu(), flush=True)
-        if self.sheet:
-            self.write_sheet()
-        if not (self.modes or self.quality_modes):  # ``--modes --quality-modes``: the sheet only
-            return []
-        timed, scored = set(self.modes), set(self.quality_modes)
-        for chosen in (timed, scored):
-            if chosen:  # exact is the reference of every difference
-                chosen.add("exact")
-        order = ["exact"] + [m for m in dict.fromkeys(self.modes + self.quality_modes) if m != "exact"]
-        results = []
-        with tempfile.TemporaryDirectory() as tmp:
-            for mode in order:
-                cmd = [
-                    sys.executable,
-                    "-m",
-                    "naka_gs_plugin.bench.correction_bench",
-                    "--child",
-                    mode,
-                    str(self.image),
-                    self.weights,
-                    tmp,
-                    str(int(mode in timed)),
-                    str(int(mode in scored)),
-                    str(self.threads),
-                    str(self.repeats),
-                    str(self.resolution_scale),
-                ]
-                out = subprocess.run(cmd, capture_output=True, text=True)
-                if out.returncode != 0:
-                    raise RuntimeError(f"mode {mode} failed:\n{out.stderr[-2000:]}")
-                r = json.loads(out.stdout.strip().splitlines()[-1])
-                if mode in timed:
-                    ref = np.load(Path(tmp) / "exact.npy")
-                    diff = np.abs(np.load(Path(tmp) / f"{mode}.npy") - ref)
-                    r.update(
-                        max_abs=float(diff.max()),
-                        mean_abs=float(diff.mean()),
-                        max_abs_interior=float(diff[..., BORDER:-BORDER, BORDER:-BORDER].max()),
-                    )
-                results.append(r)
-                self._print(r, results[0])
-        if self.json_out:
-            self.json_out.parent.mkdir(parents=True, exist_ok=True)
-            self.json_out.write_text(json.dumps(results, indent=1))
-        return results
-
-    @staticmethod
-    def _print(r: dict, exact: dict) -> None:
-        name = r["mode"] if r["mode"] == r["resolved"] else f"{r['mode']} ({r['resolved']})"
-        line = f"{name:>13}:"
-        if "seconds" in r:
-            h, w = r["size"]
-            line += (
-                f" {w}x{h} {r['seconds']:6.2f} s wall ({exact['seconds'] / r['seconds']:4.2f}x exact), "
-                f"{r['cpu_seconds']:6.2f} s CPU ({exact['cpu_seconds'] / r['cpu_seconds']:4.2f}x); "
-                f"peak RSS {r['peak_gb']:.2f} GB ({r['peak_gb'] / exact['peak_gb']:.2f}x exact); "
-                f"vs exact max {r['max_abs']:.2e} (interior {r['max_abs_interior']:.2e}) mean {r['mean_abs']:.2e}; "
-                f"load {r['load_average']:.1f}"
-            )
-        if "tiling_max_abs_interior" in r:
-            line += f"; tiled vs untiled same stats {r['tiling_max_abs_interior']:.2e}"
-        if "quality" in r:
-            for name in ("lom", "lol"):
-                p, s = _summary(r["quality"], name)
-                p0, s0 = _summary(exact["quality"], name)
-                line += f"; {name} PSNR {p:.3f} ({p - p0:+.3f}) SSIM {s:.4f} ({s - s0:+.4f})"
-        print(line, flush=True)
-
-
-def main(args: Optional[Sequence[str]] = None) -> None:
-    argv = list(sys.argv[1:] if args is None else args)
-    if argv[:1] == ["--child"]:
-        mode, image, weights, out_dir, timing, quality, threads, repeats, scale = argv[1:10]
-        result = run_child(
-            mode, Path(image), weights, Path(out_dir), timing == "1", quality == "1", int(threads), int(repeats), float(scale)
-        )
-        print(json.dumps(result))
-        return
-    tyro.cli(CorrectionBench, args=argv).main()
-
-
-if __name__ == "__main__":
-    main()
+    print(json.dumps(result))

@@ -38,7 +38,6 @@ from pathlib import Path
 from typing import Callable, Dict, Literal, Optional, Tuple
 
 import torch
-import tyro
 from jaxtyping import Float
 from torch import Tensor
 
@@ -565,8 +564,7 @@ def timing_table(result: Dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-# -------------------------------------------------------------------------------------------- CLI
-def main(cfg: ParityConfig) -> Tuple[Dict, str]:
+def run(cfg: ParityConfig) -> Tuple[Dict, str]:
     """Run the parity comparison or the timing; print the markdown table, write files to ``out_dir``."""
     if cfg.mode == "timing":
         result, stem = run_timing(cfg), "timing"
@@ -580,16 +578,3 @@ def main(cfg: ParityConfig) -> Tuple[Dict, str]:
         (cfg.out_dir / f"{stem}.md").write_text(table)
         (cfg.out_dir / f"{stem}.json").write_text(json.dumps(result, indent=2))
     return result, table
-
-
-def entrypoint() -> None:
-    """CLI: ``python -m naka_gs_plugin.bench.cuda_parity [--mode timing] [--checkpoint CKPT] [--out-dir DIR]``."""
-    cfg = tyro.cli(ParityConfig)
-    try:
-        main(cfg)
-    except (FileNotFoundError, ValueError) as err:
-        raise SystemExit(f"cuda_parity: {err}") from None
-
-
-if __name__ == "__main__":
-    entrypoint()

@@ -34,16 +34,13 @@ import time
 import traceback
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Sequence, Tuple
 
 import numpy as np
-import tyro
 import yaml
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from naka_gs_plugin.progress import StageProgress
-
-REPO = Path(__file__).resolve().parents[2]
+from naka_gs_plugin.shipped import CONFIGS, config_file
 
 ALIASES: Dict[str, str] = {
     "steps": "max_num_iterations",
@@ -80,10 +77,11 @@ class GridSpec:
 
 
 def load_grid(path: Path) -> GridSpec:
-    """Parse and check a grid file (paths relative to the repository root or the file)."""
-    path = Path(path)
+    """Parse and check a grid file (``configs/bench/...``: the shipped one if there is no such file)."""
+    path = config_file(Path(path))
     if not path.is_file():
-        raise BenchSpecError(f"{path}: no such grid file -- pass one of {sorted(p.name for p in (REPO / 'configs' / 'bench').glob('*.yaml'))}")
+        shipped = sorted(f"configs/bench/{p.name}" for p in (CONFIGS / "bench").glob("*.yaml"))
+        raise BenchSpecError(f"{path}: no such grid file -- pass one of {shipped}")
     raw = yaml.safe_load(path.read_text()) or {}
     unknown = set(raw) - {"name", "scenes", "milestones", "base", "families", "seed"}
     if unknown:
@@ -126,10 +124,10 @@ def _resolve(path: str, relative_to: Path) -> Path:
     p = Path(os.path.expanduser(path))
     if p.is_absolute():
         return p
-    for root in (REPO, relative_to.parent):
+    for root in (Path.cwd(), relative_to.parent):
         if (root / p).exists():
             return (root / p).resolve()
-    return (REPO / p).resolve()
+    return config_file(p).resolve()
 
 
 def set_setting(config: Any, key: str, value: Any) -> None:
@@ -256,7 +254,7 @@ def run_one(run: Dict[str, Any], out: Path) -> Dict[str, Any]:
 
 
 # ---------------------------------------------------------------------------------------- the grid
-def _runs(spec: GridSpec, out: Path) -> List[Dict[str, Any]]:
+def grid_runs(spec: GridSpec, out: Path) -> List[Dict[str, Any]]:
     runs = []
     for scene_name, scene in spec.scenes.items():
         scene_settings = {k: v for k, v in scene.items() if k not in ("data", "sim")}
@@ -291,91 +289,45 @@ def _scene_dir(source: Dict[str, str], spec: GridSpec, out: Path) -> Path:
     return scene_dir
 
 
-@dataclass
-class Bench:
-    """Run (or resume) an accuracy-vs-time grid and write its table and plots."""
-
-    grid: tyro.conf.Positional[Path]
-    """Grid file, e.g. configs/bench/cpu.yaml."""
-    out: Optional[Path] = None
-    """Output folder (default outputs/bench/<grid name>)."""
-    only: Tuple[str, ...] = ()
-    """Run only these run ids (scene/family) or families."""
-    retry_failed: bool = False
-    """Redo runs recorded as failed (finished ones are never redone)."""
-    report_only: bool = False
-    """Only rebuild results.md and the plots from results.json."""
-    timeout_s: int = 4 * 3600
-    """Per-run limit; a run past it is recorded as failed."""
-
-    def main(self) -> Dict[str, Any]:
-        spec = load_grid(self.grid)
-        out = self.out or Path("outputs/bench") / spec.name
-        out.mkdir(parents=True, exist_ok=True)
-        results_path = out / "results.json"
-        results: Dict[str, Any] = json.loads(results_path.read_text()) if results_path.exists() else {}
-        results.setdefault("grid", spec.name)
-        results.setdefault("runs", {})
-        results["machine"] = machine_description()
-        if not self.report_only:
-            runs = [r for r in _runs(spec, out) if not self.only or r["id"] in self.only or r["family"] in self.only]
-            todo = []
-            for r in runs:
-                done = results["runs"].get(r["id"])
-                if done is None or (self.retry_failed and done["status"] == "failed") or done.get("settings") != r["settings"] or done.get("milestones") != r["milestones"]:
-                    todo.append(r)
-            CONSOLE.print(f"[naka-gs bench] {spec.name}: {len(runs)} runs, {len(runs) - len(todo)} already done", markup=False)
-            with StageProgress() as progress:
-                task = progress.add_task("grid", total=len(todo))
-                for r in todo:
-                    progress.update(task, description=f"{r['id']}")
-                    results["runs"][r["id"]] = self._execute(r, spec, out)
-                    results_path.write_text(json.dumps(results, indent=1))  # checkpoint after every run
-                    progress.advance(task)
-        results_path.write_text(json.dumps(results, indent=1))
-        (out / "results.md").write_text(markdown_table(results))
-        plot(results, out)
-        CONSOLE.print(f"[naka-gs bench] wrote {results_path}, results.md, psnr_vs_seconds.png, psnr_vs_steps.png", markup=False)
-        return results
-
-    def _execute(self, run: Dict[str, Any], spec: GridSpec, out: Path) -> Dict[str, Any]:
-        record = dict(run)
-        start = time.perf_counter()
-        try:
-            run = dict(run, data=str(_scene_dir(run["scene_source"], spec, out)))
-            run_file = out / "logs" / run["scene"] / run["family"] / "run.json"
-            run_file.parent.mkdir(parents=True, exist_ok=True)
-            run_file.write_text(json.dumps(run))
-            result_file = run_file.with_name("result.json")
-            result_file.unlink(missing_ok=True)
-            shutil.rmtree(run_file.parent / "cache", ignore_errors=True)  # cold: every stage is really timed
-            log = run_file.with_name("log.txt")
-            with open(log, "w") as fh:
-                proc = subprocess.run(
-                    [sys.executable, "-m", "naka_gs_plugin.bench.grid", "--run", str(run_file), "--out", str(out)],
-                    stdout=fh,
-                    stderr=subprocess.STDOUT,
-                    timeout=self.timeout_s,
-                    # A private cache per run: enhancement, correction and PPM are computed, hence timed.
-                    env={
-                        **os.environ,
-                        "TORCHDYNAMO_DISABLE": os.environ.get("TORCHDYNAMO_DISABLE", "1"),
-                        "NAKA_GS_CACHE": str(run_file.parent / "cache"),
-                    },
-                )
-            outcome = json.loads(result_file.read_text()) if result_file.exists() else None
-            if proc.returncode != 0 or outcome is None or "error" in outcome:
-                error = (outcome or {}).get("error") or _last_line(log) or f"exit status {proc.returncode}"
-                raise RuntimeError(error)
-            record.update(outcome, status="ok")
-        except subprocess.TimeoutExpired:
-            record.update(status="failed", error=f"timed out after {self.timeout_s} s")
-        except Exception as err:  # a failed run is recorded and the grid carries on
-            record.update(status="failed", error=f"{type(err).__name__}: {err}")
-        record["wall_s"] = round(time.perf_counter() - start, 1)
-        if record["status"] == "failed":
-            CONSOLE.print(f"[naka-gs bench] {record['id']} failed: {record['error']}", markup=False)
-        return record
+def execute(run: Dict[str, Any], spec: GridSpec, out: Path, timeout_s: int) -> Dict[str, Any]:
+    """Run one grid run in its own process (see :func:`run_one`); a failure is recorded, never raised."""
+    record = dict(run)
+    start = time.perf_counter()
+    try:
+        run = dict(run, data=str(_scene_dir(run["scene_source"], spec, out)))
+        run_file = out / "logs" / run["scene"] / run["family"] / "run.json"
+        run_file.parent.mkdir(parents=True, exist_ok=True)
+        run_file.write_text(json.dumps(run))
+        result_file = run_file.with_name("result.json")
+        result_file.unlink(missing_ok=True)
+        shutil.rmtree(run_file.parent / "cache", ignore_errors=True)  # cold: every stage is really timed
+        log = run_file.with_name("log.txt")
+        with open(log, "w") as fh:
+            proc = subprocess.run(
+                [sys.executable, "-m", "naka_gs_plugin.bench.grid", "--run", str(run_file), "--out", str(out)],
+                stdout=fh,
+                stderr=subprocess.STDOUT,
+                timeout=timeout_s,
+                # A private cache per run: enhancement, correction and PPM are computed, hence timed.
+                env={
+                    **os.environ,
+                    "TORCHDYNAMO_DISABLE": os.environ.get("TORCHDYNAMO_DISABLE", "1"),
+                    "NAKA_GS_CACHE": str(run_file.parent / "cache"),
+                },
+            )
+        outcome = json.loads(result_file.read_text()) if result_file.exists() else None
+        if proc.returncode != 0 or outcome is None or "error" in outcome:
+            error = (outcome or {}).get("error") or _last_line(log) or f"exit status {proc.returncode}"
+            raise RuntimeError(error)
+        record.update(outcome, status="ok")
+    except subprocess.TimeoutExpired:
+        record.update(status="failed", error=f"timed out after {timeout_s} s")
+    except Exception as err:  # a failed run is recorded and the grid carries on
+        record.update(status="failed", error=f"{type(err).__name__}: {err}")
+    record["wall_s"] = round(time.perf_counter() - start, 1)
+    if record["status"] == "failed":
+        CONSOLE.print(f"[naka-gs bench] {record['id']} failed: {record['error']}", markup=False)
+    return record
 
 
 def _last_line(log: Path) -> str:
@@ -487,17 +439,5 @@ def _child(run_file: Path, out: Path) -> None:
     result_file.write_text(json.dumps(result, indent=1))
 
 
-def entrypoint(args: Optional[Sequence[str]] = None) -> None:
-    argv = list(sys.argv[1:] if args is None else args)
-    if argv[:1] == ["--run"]:  # internal: one run in this process (see Bench._execute)
-        _child(Path(argv[1]), Path(argv[3]))
-        return
-    try:
-        tyro.cli(Bench, args=argv).main()
-    except BenchSpecError as err:
-        CONSOLE.print(f"[naka-gs bench] error: {err}", markup=False)
-        raise SystemExit(2) from None
-
-
-if __name__ == "__main__":
-    entrypoint()
+if __name__ == "__main__":  # internal: ``--run RUN_FILE --out OUT``, one run in this process (see execute)
+    _child(Path(sys.argv[2]), Path(sys.argv[4]))

@@ -18,11 +18,9 @@ import resource
 import subprocess
 import sys
 import time
-from dataclasses import dataclass
 from typing import Sequence, Tuple
 
 import numpy as np
-import tyro
 
 from naka_gs_plugin.bench.machine import describe_cpu
 
@@ -106,49 +104,33 @@ def run_one(scale: int, impl: str) -> dict:
     }
 
 
-@dataclass
-class PPMBench:
-    """Time our PPM and the plain reference on the 1M / 6M benchmark clouds, each in a fresh process."""
-
-    scales: Tuple[int, ...] = (1, 6)
-    """Cloud sizes in millions of points."""
-    reference: bool = True
-    """Also run the plain re-implementation of the authors' PPM (the ratio's denominator)."""
-
-    def main(self) -> None:
-        print(describe_cpu())
-        for scale in self.scales:
-            runs = {}
-            for impl in ("ours", "reference") if self.reference else ("ours",):
-                out = subprocess.run(
-                    [sys.executable, "-m", "naka_gs_plugin.bench.ppm_bench", "--child", str(scale), impl],
-                    capture_output=True,
-                    text=True,
-                    check=True,
-                ).stdout
-                runs[impl] = json.loads(out.strip().splitlines()[-1])
-            r = runs["ours"]
-            line = (
-                f"{r['points']:,} points: ours {r['seconds']:.3f} s (pool {r['timings_s']['voxel_pool']:.3f} s, "
-                f"prune {r['timings_s']['prune']:.3f} s), {r['kept']:,} kept, peak RSS +{r['peak_rss_increase_gb']:.2f} GB"
+def compare(scales: Sequence[int], reference: bool) -> None:
+    """Print ours (and the reference) per cloud size in millions of points, each in a fresh process."""
+    print(describe_cpu())
+    for scale in scales:
+        runs = {}
+        for impl in ("ours", "reference") if reference else ("ours",):
+            out = subprocess.run(
+                [sys.executable, "-m", "naka_gs_plugin.bench.ppm_bench", "--child", str(scale), impl],
+                capture_output=True,
+                text=True,
+                check=True,
+            ).stdout
+            runs[impl] = json.loads(out.strip().splitlines()[-1])
+        r = runs["ours"]
+        line = (
+            f"{r['points']:,} points: ours {r['seconds']:.3f} s (pool {r['timings_s']['voxel_pool']:.3f} s, "
+            f"prune {r['timings_s']['prune']:.3f} s), {r['kept']:,} kept, peak RSS +{r['peak_rss_increase_gb']:.2f} GB"
+        )
+        if "reference" in runs:
+            ref = runs["reference"]
+            same = "same points" if (ref["kept"], ref["checksum"]) == (r["kept"], r["checksum"]) else "POINTS DIFFER"
+            line += (
+                f"; reference {ref['seconds']:.3f} s, peak RSS +{ref['peak_rss_increase_gb']:.2f} GB: "
+                f"ours {ref['seconds'] / r['seconds']:.1f}x faster ({same})"
             )
-            if "reference" in runs:
-                ref = runs["reference"]
-                same = "same points" if (ref["kept"], ref["checksum"]) == (r["kept"], r["checksum"]) else "POINTS DIFFER"
-                line += (
-                    f"; reference {ref['seconds']:.3f} s, peak RSS +{ref['peak_rss_increase_gb']:.2f} GB: "
-                    f"ours {ref['seconds'] / r['seconds']:.1f}x faster ({same})"
-                )
-            print(f"{line}; load {r['load_average']:.2f}", flush=True)
+        print(f"{line}; load {r['load_average']:.2f}", flush=True)
 
 
-def main(args: Sequence[str] | None = None) -> None:
-    argv = list(sys.argv[1:] if args is None else args)
-    if argv[:1] == ["--child"]:
-        print(json.dumps(run_one(int(argv[1]), argv[2])))
-        return
-    tyro.cli(PPMBench, args=argv).main()
-
-
-if __name__ == "__main__":
-    main()
+if __name__ == "__main__":  # internal: ``--child SCALE IMPL``, one timed run in this process (see compare)
+    print(json.dumps(run_one(int(sys.argv[2]), sys.argv[3])))

@@ -47,7 +47,6 @@ from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
 import torch
-import tyro
 from rich.console import Console
 from rich.table import Table
 
@@ -473,17 +472,3 @@ def report(cfg: BenchConfig) -> None:
             **results,
         }
         cfg.out_json.write_text(json.dumps(payload, indent=2))
-
-
-def main() -> None:
-    """Console script ``naka-gs-bench-raster``: the CPU rasterizer benchmark."""
-    cfg = tyro.cli(BenchConfig)
-    if cfg.dense_budget < 0:
-        raise SystemExit(
-            f"naka-gs-bench-raster: --dense-budget must be >= 0 (0 skips the dense reference), got {cfg.dense_budget}"
-        )
-    report(cfg)
-
-
-if __name__ == "__main__":
-    main()

@@ -12,6 +12,7 @@ multiplicative head (its filters are averaged to one channel, as their loader do
 from __future__ import annotations
 
 import hashlib
+from importlib.resources import files
 from pathlib import Path
 from typing import Dict, Optional, Union
 
@@ -21,7 +22,7 @@ from torch import Tensor
 from naka_gs_plugin.enhance.correction_net import ChromaGuided, ChromaGuidedConfig
 
 CHECKPOINT_FORMAT = "naka-gs-correction"
-DEFAULT_WEIGHTS = Path(__file__).resolve().parent / "weights" / "chroma_guided_default.pt"
+DEFAULT_WEIGHTS = Path(str(files("naka_gs_plugin.enhance") / "weights" / "chroma_guided_default.pt"))
 """The shipped weights (``EnhanceConfig.correction = "default"``)."""
 
 

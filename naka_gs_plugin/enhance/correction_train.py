@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 import time
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
@@ -36,10 +35,9 @@ import cv2
 import numpy as np
 import torch
 import torch.nn.functional as F
-import tyro
 import yaml
 from jaxtyping import Float
-from nerfstudio.utils.rich_utils import CONSOLE
+from rich.console import Console
 from torch import Tensor
 
 from naka_gs_plugin.cpu import fit_threads
@@ -51,6 +49,10 @@ from naka_gs_plugin.enhance.correction_net import ChromaGuided, ChromaGuidedConf
 from naka_gs_plugin.enhance.naka import naka_enhance
 from naka_gs_plugin.metrics import psnr
 from naka_gs_plugin.progress import StageProgress
+from naka_gs_plugin.shipped import config_file
+
+CONSOLE = Console(width=120)
+"""The trainer's console (rich's, as nerfstudio's: this module imports without nerfstudio)."""
 
 @dataclass
 class TrainConfig:
@@ -204,7 +206,7 @@ class PairSet:
         self.pairs = list(pairs)
         self.low: List[np.ndarray] = []
         self.high: List[np.ndarray] = []
-        with StageProgress() as progress:
+        with StageProgress(CONSOLE) as progress:
             task = progress.add_task(description, total=len(self.pairs))
             for p in self.pairs:
                 low, high = read_stored(p.low), read_stored(p.high)
@@ -300,7 +302,9 @@ def _jsonable(config: TrainConfig) -> dict:
 
 
 def config_from_yaml(path: Path) -> TrainConfig:
-    """A :class:`TrainConfig` whose fields are set from a YAML mapping of field names."""
+    """A :class:`TrainConfig` whose fields are set from a YAML mapping of field names (``configs/correction/...``:
+    the shipped recipe if there is no such file)."""
+    path = config_file(path)
     if not path.is_file():
         raise FileNotFoundError(f"recipe {path} not found: pass an existing YAML file to --config")
     data = yaml.safe_load(path.read_text()) or {}
@@ -445,7 +449,7 @@ def train(config: TrainConfig) -> Dict[str, list]:
         gen = torch.Generator().manual_seed(int(rng.integers(2**62)))
         order = torch.multinomial(weights, per_epoch, replacement=per_epoch > len(train_set), generator=gen).tolist()
         sums: Dict[str, float] = {}
-        with StageProgress() as progress:
+        with StageProgress(CONSOLE) as progress:
             task = progress.add_task(f"epoch {epoch}/{config.epochs}", total=iters)
             for it in range(iters):
                 idx = order[it * config.batch_size : (it + 1) * config.batch_size]
@@ -521,26 +525,3 @@ def export_weights(checkpoint: Path, dest: Path) -> Path:
 
 def _fmt(v: Dict[str, float]) -> str:
     return " ".join(f"{k} {x:.2f}" for k, x in v.items())
-
-
-def entrypoint() -> None:
-    """CLI: ``naka-gs-train-correction [--config RECIPE.yaml] [flags]``."""
-    args = sys.argv[1:]
-    default = TrainConfig()
-    if "--config" in args:
-        i = args.index("--config")
-        if i + 1 >= len(args):
-            raise SystemExit("--config needs a YAML path")
-        try:
-            default = config_from_yaml(Path(args[i + 1]))
-        except (FileNotFoundError, ValueError, TypeError) as err:
-            raise SystemExit(f"naka-gs-train-correction: {err}") from None
-    config = tyro.cli(TrainConfig, default=default, args=args)
-    try:
-        train(config)
-    except (FileNotFoundError, ValueError) as err:
-        raise SystemExit(f"naka-gs-train-correction: {err}") from None
-
-
-if __name__ == "__main__":
-    entrypoint()

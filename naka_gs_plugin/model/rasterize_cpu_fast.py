@@ -46,8 +46,8 @@ import numba
 import numpy as np
 import torch
 from jaxtyping import Float, Int
-from nerfstudio.utils.rich_utils import CONSOLE
 from numba import njit, prange
+from rich.console import Console
 from torch import Tensor
 
 from naka_gs_plugin.model.project_cpu_fast import (
@@ -67,6 +67,9 @@ from naka_gs_plugin.model.rasterize import (
     RenderMode,
     rasterization_with_compositor,
 )
+
+CONSOLE = Console(width=120)
+"""rich's console, as nerfstudio's (this module imports without nerfstudio, e.g. on the GPU machine)."""
 
 VIS_STORE_MAX = 1 << 27
 """Most ``exp(-sigma)`` values (one per box pixel of each list entry; ~3x the composited pairs for

@@ -18,6 +18,20 @@ from scipy.spatial import cKDTree
 
 _KEY_LIMIT = float(2**62)
 
+# The PPM parameters' defaults (the authors'), also those of ``--pipeline.init.*`` and ``naka-gs-ppm``.
+VOXEL = 0.01
+"""Voxel edge of the pooling, normalized scene units."""
+TAU0 = 0.005
+"""Initial pruning distance threshold, same units."""
+BETA = 0.01
+"""Threshold growth rate per pruning iteration."""
+ITERATIONS = 6
+"""Pruning iterations."""
+MIN_POINTS = 5000
+"""Minimum points kept by pruning."""
+SEED = 42
+"""Seed of the pruning draws."""
+
 
 def _group_order(xyz: torch.Tensor, voxel: float) -> Tuple[np.ndarray, np.ndarray]:
     """Permutation sorting points by voxel key ``floor(xyz / voxel)`` (x, y, z lexicographic), and group sizes.
@@ -53,7 +67,7 @@ def _group_order(xyz: torch.Tensor, voxel: float) -> Tuple[np.ndarray, np.ndarra
 
 
 def voxel_pool(
-    xyz: Float[np.ndarray, "N 3"], rgb: UInt8[np.ndarray, "N 3"], voxel: float = 0.01
+    xyz: Float[np.ndarray, "N 3"], rgb: UInt8[np.ndarray, "N 3"], voxel: float = VOXEL
 ) -> Tuple[Float[np.ndarray, "M 3"], UInt8[np.ndarray, "M 3"]]:
     """One point per occupied voxel ``floor(p / voxel)``: mean position (float64), mean colour rounded half-up."""
     if voxel <= 0:
@@ -131,12 +145,12 @@ class _NearestAlive:
 def progressive_prune(
     xyz: Float[np.ndarray, "N 3"],
     rgb: UInt8[np.ndarray, "N 3"],
-    tau0: float = 0.005,
-    beta: float = 0.01,
-    iterations: int = 6,
-    min_points: int = 5000,
+    tau0: float = TAU0,
+    beta: float = BETA,
+    iterations: int = ITERATIONS,
+    min_points: int = MIN_POINTS,
     eps: float = 1e-8,
-    seed: int = 42,
+    seed: int = SEED,
     tau_update: Literal["reference", "paper"] = "reference",
 ) -> Tuple[Float[np.ndarray, "K 3"], UInt8[np.ndarray, "K 3"], Dict[str, Any]]:
     """Randomly thin dense regions: keep each point with probability ``min(1, d_nn / (tau + eps))``.
@@ -191,13 +205,13 @@ def progressive_prune(
 def run_ppm(
     xyz: Float[np.ndarray, "N 3"],
     rgb: UInt8[np.ndarray, "N 3"],
-    voxel: float = 0.01,
-    tau0: float = 0.005,
-    beta: float = 0.01,
-    iterations: int = 6,
-    min_points: int = 5000,
+    voxel: float = VOXEL,
+    tau0: float = TAU0,
+    beta: float = BETA,
+    iterations: int = ITERATIONS,
+    min_points: int = MIN_POINTS,
     eps: float = 1e-8,
-    seed: int = 42,
+    seed: int = SEED,
     tau_update: Literal["reference", "paper"] = "reference",
 ) -> Tuple[Float[np.ndarray, "K 3"], UInt8[np.ndarray, "K 3"], Dict[str, Any]]:
     """Full PPM: drop non-finite points, ``voxel_pool``, then ``progressive_prune``.

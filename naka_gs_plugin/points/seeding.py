@@ -30,7 +30,7 @@ from naka_gs_plugin.data.lowlight_dataparser import (
     to_normalized_frame,
 )
 from naka_gs_plugin.points.align import AlignmentError, apply_sim3, match_names, umeyama
-from naka_gs_plugin.points.ppm import run_ppm
+from naka_gs_plugin.points.ppm import BETA, ITERATIONS, MIN_POINTS, SEED, TAU0, VOXEL, run_ppm
 from naka_gs_plugin.points.sources import PointCloud, PointSourceError, find_scene_source, load_points, source_files
 
 CACHE_VERSION = 1
@@ -49,19 +49,19 @@ class PPMSettings:
     ppm: bool = True
     """Clean the points with PPM (voxel pooling + progressive pruning) before seeding; False only
     aligns/normalizes and drops non-finite and duplicate points."""
-    voxel_size: float = 0.01
+    voxel_size: float = VOXEL
     """PPM voxel edge, normalized scene units (``naka-gs-ppm`` without ``--scene``: the source's units)."""
-    tau0: float = 0.005
+    tau0: float = TAU0
     """Initial pruning distance threshold, same units."""
-    beta: float = 0.01
+    beta: float = BETA
     """Threshold growth rate per pruning iteration."""
-    iterations: int = 6
+    iterations: int = ITERATIONS
     """Pruning iterations."""
-    min_points: int = 5000
+    min_points: int = MIN_POINTS
     """Minimum points kept by pruning (an iteration going below is rolled back and pruning stops)."""
     tau_update: Literal["reference", "paper"] = "reference"
     """tau *= exp(beta * N / M0) with N the count before (reference code) or after (paper) pruning."""
-    seed: int = 42
+    seed: int = SEED
     """Seed of the pruning draws."""
 
 

@@ -212,3 +212,20 @@ def source_files(path: Path) -> List[Path]:
             files = sorted(p for p in model.iterdir() if p.is_file() and p.stem in ("points3D", "images", "points"))
             break
     return files
+
+
+def write_ply(path: Path, xyz: Float[np.ndarray, "N 3"], rgb: Optional[UInt8[np.ndarray, "N 3"]]) -> None:
+    """Binary little-endian PLY: float32 ``x y z`` (+ uchar ``red green blue``)."""
+    from plyfile import PlyData, PlyElement
+
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    if rgb is not None:
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    vertex = np.empty(len(xyz), dtype=fields)
+    for i, k in enumerate("xyz"):
+        vertex[k] = xyz[:, i]
+    if rgb is not None:
+        for i, k in enumerate(("red", "green", "blue")):
+            vertex[k] = rgb[:, i]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    PlyData([PlyElement.describe(vertex, "vertex")], text=False).write(str(path))

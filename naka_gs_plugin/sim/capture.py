@@ -15,12 +15,13 @@ import json
 from pathlib import Path
 from typing import Dict, List, Tuple
 
+import cv2
 import numpy as np
 import torch
 from jaxtyping import Float
-from PIL import Image
 from torch import Tensor
 
+from naka_gs_plugin.data.images import read_rgb
 from naka_gs_plugin.sim.effects import srgb_to_linear
 from naka_gs_plugin.sim.spec import CaptureSource, SimSpecError
 from naka_gs_plugin.sim.views import View
@@ -86,8 +87,7 @@ class CaptureScene:
         return out
 
     def clean(self, view: View) -> Float[Tensor, "H W 3"]:
-        """The view's real normal-light image, downscaled (box) and decoded to linear [0, 1], float64."""
-        with Image.open(view.origin) as im:
-            small = im.convert("RGB").resize((view.width, view.height), Image.Resampling.BOX)
-        srgb = torch.from_numpy(np.asarray(small, dtype=np.float64) / 255.0)
-        return srgb_to_linear(srgb)
+        """The view's real normal-light image, downscaled (area filter) and decoded to linear [0, 1], float64."""
+        full = read_rgb(Path(view.origin), np.float64)
+        small = cv2.resize(full, (view.width, view.height), interpolation=cv2.INTER_AREA)
+        return srgb_to_linear(torch.from_numpy(small))

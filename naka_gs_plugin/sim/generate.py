@@ -25,8 +25,8 @@ from typing import Any, Dict, Optional, Union
 import numpy as np
 import torch
 from nerfstudio.utils.rich_utils import CONSOLE
-from rich.progress import track
 
+from naka_gs_plugin.progress import StageProgress
 from naka_gs_plugin.sim import points as pc
 from naka_gs_plugin.sim.capture import CaptureScene
 from naka_gs_plugin.sim.effects import encode, image_suffix, sensor, write_image
@@ -98,28 +98,31 @@ def generate(spec: SceneSpec, out: Path, seed: Optional[int] = None) -> Path:
     frames: Dict[str, list] = {"train": [], "test": []}
     per_view = []
     suffix = image_suffix(spec.effects, ground_truth=False)
-    for k, view in enumerate(track(scene.views, description=f"naka-gs-sim {spec.name}", console=CONSOLE)):
-        clean = scene.clean(view)
-        truth = encode(clean.clamp(0.0, 1.0), spec.effects)
-        if view.split == "train":
-            lamp = lamp_image(view, lamps, lamps_cfg.intensity, lamps_cfg.radius) if lamps_cfg else None
-            generator = noise_generator(spec.seed, view) if spec.effect(Noise) else None
-            recorded = sensor(clean, spec.effects, float(jitter[k]), lamp, generator)
-            write_image(out / "train" / f"{view.name}{suffix}", encode(recorded, spec.effects), spec.effects, False)
-            write_image(out / "train_gt" / f"{view.name}.png", truth, spec.effects, True)
-            file_path = f"train/{view.name}{suffix}"
-            per_view.append(
-                {
-                    "file_path": file_path,
-                    "exposure_multiplier": float(jitter[k]),
-                    "saturated_fraction": float((recorded >= 1.0).any(-1).double().mean()),
-                    "source_image": view.origin,
-                }
-            )
-        else:
-            write_image(out / "test" / f"{view.name}.png", truth, spec.effects, True)
-            file_path = f"test/{view.name}.png"
-        frames[view.split].append({"file_path": file_path, "transform_matrix": view.c2w.tolist()})
+    with StageProgress() as progress:
+        task = progress.add_task(f"naka-gs-sim {spec.name}", total=len(scene.views))
+        for k, view in enumerate(scene.views):
+            clean = scene.clean(view)
+            truth = encode(clean.clamp(0.0, 1.0), spec.effects)
+            if view.split == "train":
+                lamp = lamp_image(view, lamps, lamps_cfg.intensity, lamps_cfg.radius) if lamps_cfg else None
+                generator = noise_generator(spec.seed, view) if spec.effect(Noise) else None
+                recorded = sensor(clean, spec.effects, float(jitter[k]), lamp, generator)
+                write_image(out / "train" / f"{view.name}{suffix}", encode(recorded, spec.effects), spec.effects, False)
+                write_image(out / "train_gt" / f"{view.name}.png", truth, spec.effects, True)
+                file_path = f"train/{view.name}{suffix}"
+                per_view.append(
+                    {
+                        "file_path": file_path,
+                        "exposure_multiplier": float(jitter[k]),
+                        "saturated_fraction": float((recorded >= 1.0).any(-1).double().mean()),
+                        "source_image": view.origin,
+                    }
+                )
+            else:
+                write_image(out / "test" / f"{view.name}.png", truth, spec.effects, True)
+                file_path = f"test/{view.name}.png"
+            frames[view.split].append({"file_path": file_path, "transform_matrix": view.c2w.tolist()})
+            progress.advance(task)
     for split, items in frames.items():
         body = {**{k: float(v) for k, v in scene.intrinsics().items()}, "frames": items}
         (out / f"transforms_{split}.json").write_text(json.dumps(body, indent=1))

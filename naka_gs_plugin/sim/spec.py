@@ -30,6 +30,8 @@ from typing import Any, Dict, List, Literal, Optional, Tuple, Union, get_args, g
 import numpy as np
 import yaml
 
+from naka_gs_plugin.shipped import CONFIGS, config_file
+
 
 class SimSpecError(ValueError):
     """A scene spec is invalid; the message is one line: ``<file>: field '<field>': <problem>``."""
@@ -335,8 +337,8 @@ def parse_spec(data: Any, path: Path) -> SceneSpec:
 
 
 def load_spec(path: Union[str, Path]) -> SceneSpec:
-    """Read and validate a YAML scene spec."""
-    path = Path(path)
+    """Read and validate a YAML scene spec (``configs/scenes/...``: the shipped one if there is no such file)."""
+    path = config_file(Path(path))
     if not path.is_file():
         raise SimSpecError(f"{path}: field '<file>': spec file not found")
     try:
@@ -346,7 +348,6 @@ def load_spec(path: Union[str, Path]) -> SceneSpec:
     return parse_spec(data, path)
 
 
-def shipped_specs(root: Optional[Path] = None) -> List[Path]:
-    """The spec files shipped in ``configs/scenes/`` of the repository."""
-    root = root or Path(__file__).resolve().parents[2]
-    return sorted((root / "configs" / "scenes").glob("*.yaml"))
+def shipped_specs() -> List[Path]:
+    """The spec files shipped in the package's ``configs/scenes/``."""
+    return sorted((CONFIGS / "scenes").glob("*.yaml"))

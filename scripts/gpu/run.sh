@@ -74,8 +74,8 @@ step_parity() {
   local ckpt=()
   if [ -n "${NAKA_GS_PARITY_CKPT:-}" ]; then ckpt=(--checkpoint "$NAKA_GS_PARITY_CKPT" --max-gaussians 200000); fi
   # The saved reference (inputs + gsplat outputs) lets cpu-fast be compared on a CPU afterwards:
-  # python -m naka_gs_plugin.bench.cuda_parity --reference-file .../gsplat_reference.pt
-  "$PY" -m naka_gs_plugin.bench.cuda_parity --reference gsplat "${ckpt[@]}" \
+  # python -m naka_gs_plugin.scripts.cuda_parity --reference-file .../gsplat_reference.pt
+  "$PY" -m naka_gs_plugin.scripts.cuda_parity --reference gsplat "${ckpt[@]}" \
     --out-dir "$OUT/parity" --save-reference "$OUT/parity/gsplat_reference.pt"
 }
 
@@ -85,7 +85,7 @@ step_tests() {
 }
 
 step_timing() {
-  "$PY" -m naka_gs_plugin.bench.cuda_parity --mode timing --out-dir "$OUT/timing"
+  "$PY" -m naka_gs_plugin.scripts.cuda_parity --mode timing --out-dir "$OUT/timing"
 }
 
 steps=("$@")

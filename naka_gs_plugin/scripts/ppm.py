@@ -15,18 +15,17 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Optional
+from typing import Optional, Sequence
 
-import numpy as np
 import tyro
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from naka_gs_plugin.points.seeding import PointInitConfig, PPMSettings, TrainingFrame, describe, prepare_points
-from naka_gs_plugin.points.sources import PointSourceError, find_scene_source, load_points
+from naka_gs_plugin.points.sources import PointSourceError, find_scene_source, load_points, write_ply
 
 
 @dataclass(kw_only=True)
-class PPMCommand(PPMSettings):
+class Ppm(PPMSettings):
     """Clean a point cloud with Naka-GS's PPM (voxel pooling + progressive pruning)."""
 
     input: tyro.conf.Positional[Path]
@@ -70,27 +69,10 @@ class PPMCommand(PPMSettings):
         return summary
 
 
-def write_ply(path: Path, xyz: np.ndarray, rgb: Optional[np.ndarray]) -> None:
-    """Binary little-endian PLY: float32 ``x y z`` (+ uchar ``red green blue``)."""
-    from plyfile import PlyData, PlyElement
-
-    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
-    if rgb is not None:
-        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
-    vertex = np.empty(len(xyz), dtype=fields)
-    for i, k in enumerate("xyz"):
-        vertex[k] = xyz[:, i]
-    if rgb is not None:
-        for i, k in enumerate(("red", "green", "blue")):
-            vertex[k] = rgb[:, i]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    PlyData([PlyElement.describe(vertex, "vertex")], text=False).write(str(path))
-
-
-def entrypoint() -> None:
-    """Console script ``naka-gs-ppm``."""
+def entrypoint(args: Optional[Sequence[str]] = None) -> None:
+    """Console script ``naka-gs-ppm``; a bad source or setting prints one line and exits with status 2."""
     try:
-        tyro.cli(PPMCommand, config=(tyro.conf.FlagConversionOff,)).main()  # --ppm True/False, as ns-train
+        tyro.cli(Ppm, args=args, config=(tyro.conf.FlagConversionOff,)).main()  # --ppm True/False, as ns-train
     except (PointSourceError, ValueError) as err:
         CONSOLE.print(f"[naka-gs] error: {err}", markup=False, style="bold red")
         raise SystemExit(2) from None

@@ -15,7 +15,7 @@ import shutil
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
+from typing import Optional, Sequence
 
 import tyro
 from nerfstudio.utils.rich_utils import CONSOLE
@@ -27,12 +27,15 @@ from naka_gs_plugin.data.safe_io import (
     publish_dir,
     staging_dir,
 )
+from naka_gs_plugin.shipped import config_file
 from naka_gs_plugin.sim.generate import generate
 from naka_gs_plugin.sim.spec import CaptureSource, SimSpecError, load_spec
 
 
 @dataclass
-class SimArgs:
+class Sim:
+    """Generate a synthetic low-light scene from a YAML spec."""
+
     spec: tyro.conf.Positional[Path]
     """Scene spec YAML, e.g. configs/scenes/dark-noisy.yaml."""
     out: Path = Path("outputs/sim/scene")
@@ -40,28 +43,29 @@ class SimArgs:
     seed: Optional[int] = None
     """Override the spec's noise seed."""
 
+    def main(self) -> Path:
+        """Generate the scene of ``spec`` into ``out`` (see the module docstring); returns ``out``."""
+        spec_file = config_file(self.spec)  # the spec --out may not overwrite, shipped or not
+        spec = load_spec(spec_file)
+        inputs = [spec_file] + ([spec.source.path] if isinstance(spec.source, CaptureSource) else [])
+        check_not_input(self.out, inputs, "--out")
+        check_replaceable(self.out, "--out", None)
+        out = self.out.resolve()
+        stage = staging_dir(out)
+        try:
+            generate(spec, stage, seed=self.seed)
+            publish_dir(stage, out, "naka-gs-sim", "--out", None)
+        finally:
+            shutil.rmtree(stage, ignore_errors=True)  # our own staging folder; gone already once published
+        CONSOLE.log(f"naka-gs-sim: scene ready in {self.out}", markup=False)
+        return self.out
 
-def main(args: SimArgs) -> Path:
-    """Generate the scene of ``args.spec`` into ``args.out`` (see the module docstring); returns ``args.out``."""
-    spec = load_spec(args.spec)
-    inputs = [args.spec] + ([spec.source.path] if isinstance(spec.source, CaptureSource) else [])
-    check_not_input(args.out, inputs, "--out")
-    check_replaceable(args.out, "--out", None)
-    out = args.out.resolve()
-    stage = staging_dir(out)
+
+def entrypoint(args: Optional[Sequence[str]] = None) -> None:
+    """Console script ``naka-gs-sim``; a bad spec or --out prints one line and exits with status 2."""
+    sim = tyro.cli(Sim, args=args)
     try:
-        generate(spec, stage, seed=args.seed)
-        publish_dir(stage, out, "naka-gs-sim", "--out", None)
-    finally:
-        shutil.rmtree(stage, ignore_errors=True)  # our own staging folder; gone already once published
-    CONSOLE.log(f"naka-gs-sim: scene ready in {args.out}", markup=False)
-    return args.out
-
-
-def entrypoint() -> None:
-    args = tyro.cli(SimArgs, description=__doc__.splitlines()[0])
-    try:
-        main(args)
+        sim.main()
     except (SimSpecError, UnsafeOutputError) as err:
         CONSOLE.print(f"naka-gs-sim: {err}", markup=False, soft_wrap=True)
         sys.exit(2)

@@ -393,11 +393,11 @@ class ProcessData:
         )
 
 
-def entrypoint() -> None:
-    """Console script ``naka-gs-process-data``."""
-    args = tyro.cli(ProcessData)
+def entrypoint(args: Optional[Sequence[str]] = None) -> None:
+    """Console script ``naka-gs-process-data``; a failure prints one line naming its cause."""
+    process = tyro.cli(ProcessData, args=args)
     try:
-        args.main()
+        process.main()
     except (ProcessDataError, SfMError, OSError) as err:  # OSError: disk full or permissions, names the file
         raise SystemExit(f"naka-gs-process-data: {err}") from None
 

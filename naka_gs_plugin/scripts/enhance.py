@@ -43,7 +43,7 @@ from naka_gs_plugin.sheet import contact_sheet
 
 
 @dataclass
-class EnhanceCLI:
+class Enhance:
     """Enhance a low-light scene's training images and write them as PNGs."""
 
     scene: tyro.conf.Positional[Path]
@@ -115,9 +115,13 @@ class EnhanceCLI:
 
 def entrypoint(args: Optional[Sequence[str]] = None) -> None:
     """Console script ``naka-gs-enhance``; bad input prints one line and exits with status 2."""
-    cli = tyro.cli(EnhanceCLI, args=args)
+    cli = tyro.cli(Enhance, args=args)
     try:
         cli.main()
     except (UnsafeOutputError, LowLightDataError, ImageReadError, OSError) as err:  # OSError: e.g. missing weights
         CONSOLE.print(f"naka-gs-enhance: {err}", markup=False, soft_wrap=True)
         sys.exit(2)
+
+
+if __name__ == "__main__":
+    entrypoint()

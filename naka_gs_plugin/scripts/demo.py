@@ -32,11 +32,12 @@ from PIL import Image
 from naka_gs_plugin.data.images import read_rgb
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
 from naka_gs_plugin.metrics import psnr
+from naka_gs_plugin.shipped import CONFIGS
 from naka_gs_plugin.sheet import contact_sheet
 from naka_gs_plugin.sim.generate import generate
 from naka_gs_plugin.sim.spec import load_spec
 
-DEFAULT_SPEC = Path(__file__).resolve().parents[1] / "configs" / "scenes" / "dark-noisy.yaml"
+DEFAULT_SPEC = CONFIGS / "scenes" / "dark-noisy.yaml"
 
 
 @dataclass
@@ -154,4 +155,9 @@ class Demo:
 
 
 def entrypoint(args: Optional[Sequence[str]] = None) -> None:
+    """Console script ``naka-gs-demo``."""
     tyro.cli(Demo, args=args).main()
+
+
+if __name__ == "__main__":
+    entrypoint()

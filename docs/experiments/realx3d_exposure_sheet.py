@@ -1,0 +1,46 @@
+"""RealX3D by eye, 2D (docs/real-scenes.md): one training view per scene, columns low | Naka | Naka +
+shipped network | + scene exposure (the default), at 1/4 size, and each scene's mean brightness after
+each stage over every 5th training view. Run from the repository root:
+    .venv/bin/python docs/experiments/realx3d_exposure_sheet.py
+"""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+
+from naka_gs_plugin.data.images import read_rgb
+from naka_gs_plugin.enhance.exposure import apply_gamma, lift_gamma, scene_mean
+from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
+from naka_gs_plugin.sheet import contact_sheet
+
+torch.set_grad_enabled(False)
+D = Path(__file__).resolve().parents[3] / "shared" / "data" / "realx3d"
+OUT = Path(__file__).resolve().parents[1] / "img" / "realx3d_exposure_sheet.jpg"
+naka = Enhancer(EnhanceConfig(correction="none", exposure="none", use_cache=False))
+net = Enhancer(EnhanceConfig(exposure="none", use_cache=False))
+
+
+def quarter(path: Path) -> torch.Tensor:
+    im = torch.from_numpy(read_rgb(path)).permute(2, 0, 1)[None]
+    return torch.nn.functional.interpolate(im, scale_factor=0.25, mode="area")[0].permute(1, 2, 0).contiguous()
+
+
+rows, table = [], []
+for tj in sorted(D.glob("*/transforms_train.json")):
+    frames = json.load(open(tj))["frames"][::5]
+    low = [quarter(tj.parent / f["file_path"]) for f in frames]
+    n = naka.enhance_images(low, description=f"{tj.parent.name} naka")
+    c = net.enhance_images(low, description=f"{tj.parent.name} net")
+    g = lift_gamma(c)
+    e = apply_gamma(c, g)
+    k = len(low) // 2
+    rows.append([im[k].numpy() for im in (low, n, c, e)])
+    table.append((tj.parent.name, scene_mean(low), scene_mean(n), scene_mean(c), g, scene_mean(e)))
+Image.fromarray(contact_sheet(rows, max_width=320)).save(OUT, quality=88)
+print("| scene | low | Naka | + network | exposure gamma | + exposure (default) |\n|---|---|---|---|---|---|")
+for name, *v in table:
+    print(f"| {name} | {v[0]:.3f} | {v[1]:.3f} | {v[2]:.3f} | {v[3]:.2f} | {v[4]:.3f} |")
+print(f"wrote {OUT}")
