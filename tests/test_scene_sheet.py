@@ -11,7 +11,8 @@ import pytest
 import torch
 from PIL import Image
 
-from naka_gs_plugin.bench.scene_sheet import SceneSheet, entrypoint, interpolate_pose, sheet_views
+from naka_gs_plugin.bench.scene_sheet import interpolate_pose, sheet_views
+from naka_gs_plugin.scripts.scene_sheet import SceneSheet, entrypoint
 
 
 def _rotation(axis, degrees: float) -> torch.Tensor:
