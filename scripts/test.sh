@@ -4,6 +4,9 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
+# Style first (seconds): the formatter and the linter as configured in pyproject.toml.
+.venv/bin/ruff format --check --quiet .
+.venv/bin/ruff check --quiet .
 # torch.compile (nerfstudio's get_viewmat) costs ~20 s per process on CPU and buys nothing in tests.
 export TORCHDYNAMO_DISABLE=1
 .venv/bin/python -m pytest -q "$@"

@@ -428,7 +428,7 @@ def cache_corrupt_downscaled_copy(env):
     src = first_train_image(s)
     good = downscaled_copy(src, 2, cache).read_bytes()
     truncate(downscaled_copy(src, 2, cache))
-    return lambda: (downscaled_copy(src, 2, cache).read_bytes() == good), [s]
+    return lambda: downscaled_copy(src, 2, cache).read_bytes() == good, [s]
 
 
 def _recomputed_with_warning(env, same):

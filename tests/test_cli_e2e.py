@@ -217,7 +217,9 @@ def test_export_gaussian_splat_ply_matches_checkpoint(config_yml, tmp_path):
     ckpt = _ckpts(config_yml.parent / "nerfstudio_models")[-1]
     state = torch.load(ckpt, map_location="cpu", weights_only=False)
     means = state["pipeline"]["_model.gauss_params.means"]
-    assert points.shape == (means.shape[0], 3), f"PLY has {points.shape[0]} points, checkpoint {means.shape[0]} Gaussians"
+    assert points.shape == (means.shape[0], 3), (
+        f"PLY has {points.shape[0]} points, checkpoint {means.shape[0]} Gaussians"
+    )
     np.testing.assert_allclose(points, means.numpy(), rtol=0, atol=1e-6)
 
 
@@ -228,8 +230,16 @@ def test_render_dataset_test_split_writes_two_images(config_yml, tmp_path):
     out_dir = tmp_path / "renders"
     res = _run(
         _cmd(
-            "ns-render", "dataset", "--load-config", str(config_yml), "--split", "test",
-            "--output-path", str(out_dir), "--rendered-output-names", "rgb",
+            "ns-render",
+            "dataset",
+            "--load-config",
+            str(config_yml),
+            "--split",
+            "test",
+            "--output-path",
+            str(out_dir),
+            "--rendered-output-names",
+            "rgb",
         ),  # fmt: skip
         cwd=config_yml.parents[4],
         env=_env(),
@@ -395,8 +405,17 @@ def test_resume_after_sigkill_continues_from_checkpoint(toy_scene, tmp_path):
     out2 = tmp_path / "resumed"
     res = _run(
         _cmd(
-            "ns-train", "naka-gs", "--max-num-iterations", "10", "--output-dir", str(out2),
-            *TRAIN_FLAGS, "--load-dir", str(ckpt_dir), "--data", str(toy_scene),
+            "ns-train",
+            "naka-gs",
+            "--max-num-iterations",
+            "10",
+            "--output-dir",
+            str(out2),
+            *TRAIN_FLAGS,
+            "--load-dir",
+            str(ckpt_dir),
+            "--data",
+            str(toy_scene),
         ),  # fmt: skip
         cwd=tmp_path,
         env=env,

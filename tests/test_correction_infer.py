@@ -260,9 +260,9 @@ def test_unknown_mode_rejected():
 
 
 def test_datamanager_corrects_training_images_only(toy_scene, tmp_path):
+    from naka_gs_plugin.data.images import read_stored
     from naka_gs_plugin.data.lowlight_datamanager import LowLightDatamanagerConfig
     from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig
-    from naka_gs_plugin.data.images import read_stored
 
     ckpt = save_correction(_net(SMALL), tmp_path / "net.pt")
 

@@ -207,8 +207,6 @@ def test_auto_mode_picks_bfloat16_only_with_native_support(monkeypatch, capsys, 
         correction.resolve_mode("fast")
 
 
-
-
 def test_reuse_freed_memory_restores_glibc_defaults(monkeypatch):
     calls = []
 

@@ -29,8 +29,8 @@ from naka_gs_plugin.enhance.correction_train import (
     TrainConfig,
     config_from_yaml,
     export_weights,
-    lol_pairs,
     load_sources,
+    lol_pairs,
     lom_pairs,
     sim_pairs,
     train,
@@ -321,8 +321,8 @@ def test_gray_world_equalises_channel_means():
 
 
 def test_eval_cli_scores_methods_and_neutral_net_equals_naka(tmp_path):
-    from naka_gs_plugin.scripts.eval_correction import EvalCorrection
     from naka_gs_plugin.enhance.checkpoint import save_correction
+    from naka_gs_plugin.scripts.eval_correction import EvalCorrection
 
     _write_pairs(tmp_path / "pairs", "eval", 2, np.random.default_rng(2))
     model = ChromaGuided(TINY)

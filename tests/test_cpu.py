@@ -45,7 +45,9 @@ def test_fit_threads_caps_at_the_usable_cpus_and_logs_once(monkeypatch, capsys):
         assert cpu.fit_threads() == 2 and torch.get_num_threads() == 2
         torch.set_num_threads(8)
         cpu.fit_threads()
-        assert capsys.readouterr().out == "[naka-gs] using 2 threads instead of 8: 2 CPUs usable (the cgroup CPU quota)\n"
+        assert (
+            capsys.readouterr().out == "[naka-gs] using 2 threads instead of 8: 2 CPUs usable (the cgroup CPU quota)\n"
+        )
         torch.set_num_threads(1)  # fewer than usable: kept
         assert cpu.fit_threads() == 1 and torch.get_num_threads() == 1
     finally:

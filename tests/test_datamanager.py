@@ -11,9 +11,9 @@ import naka_gs_plugin.enhance.pipeline as pipeline_mod
 from naka_gs_plugin.data.images import read_rgb, read_stored
 from naka_gs_plugin.data.lowlight_datamanager import LowLightDatamanagerConfig, MissingGroundTruthError
 from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig
-from naka_gs_plugin.scripts.enhance import Enhance
 from naka_gs_plugin.enhance.naka import naka_enhance
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig
+from naka_gs_plugin.scripts.enhance import Enhance
 
 
 def _dm(scene, dtype="float32", **enhance):

@@ -130,6 +130,8 @@ def test_world_points_map_into_the_training_frame_like_the_cameras(scene):
     from naka_gs_plugin.data.lowlight_dataparser import to_normalized_frame
 
     out = LowLightDataParserConfig(data=scene, downscale_factor=1).setup().get_dataparser_outputs("test")
-    world_centres = torch.tensor([f["transform_matrix"] for f in _json(scene, "transforms_test.json")["frames"]])[:, :3, 3]
+    world_centres = torch.tensor([f["transform_matrix"] for f in _json(scene, "transforms_test.json")["frames"]])[
+        :, :3, 3
+    ]
     mapped = to_normalized_frame(world_centres, out.dataparser_transform, out.dataparser_scale)
     assert torch.allclose(mapped, out.cameras.camera_to_worlds[:, :, 3], atol=1e-5)

@@ -16,7 +16,6 @@ from plyfile import PlyData, PlyElement
 
 from naka_gs_plugin.points import seeding
 from naka_gs_plugin.points.align import AlignmentError, apply_sim3
-from naka_gs_plugin.scripts.ppm import Ppm, entrypoint
 from naka_gs_plugin.points.seeding import (
     PointInitConfig,
     TrainingFrame,
@@ -33,6 +32,7 @@ from naka_gs_plugin.points.sources import (
     load_points,
     write_ply,
 )
+from naka_gs_plugin.scripts.ppm import Ppm, entrypoint
 from naka_gs_plugin.sim.views import look_at
 
 LOM = Path(__file__).resolve().parents[2] / "shared" / "data" / "lom"
@@ -229,7 +229,10 @@ def test_align_cloud_noise_names_and_errors(tmp_path):
     scene, c2ws = _write_scene(tmp_path / "s")
     frame = TrainingFrame.from_scene(scene)
     s, r, t = 2.0, _rotation(rng), np.array([1.0, -2.0, 0.5])
-    inv = lambda x: apply_sim3(1 / s, r.T, -r.T @ t / s, x)  # world -> source
+
+    def inv(x):  # world -> source
+        return apply_sim3(1 / s, r.T, -r.T @ t / s, x)
+
     # names differ in case/suffix/zero padding: matched by stem and last integer
     cams = {f"IMG_{i + 1:04d}_enhanced.jpg": inv(c[None, :3, 3])[0] for i, c in enumerate(c2ws)}
     pts = rng.normal(size=(100, 3))
@@ -320,15 +323,24 @@ def test_resolve_seed_points_triangulation_fallback(tmp_path):
         return xyz, np.full((300, 3), 9, np.uint8), {"registered": 8}
 
     init = PointInitConfig(min_points=10)
-    key = lambda: {"k": 1}
+
+    def key():
+        return {"k": 1}
+
     res = resolve_seed_points(init, frame, tri, key)
     assert calls == [1] and res.summary["nonfinite_dropped_on_load"] == 1 and "alignment" not in res.summary
     assert res.summary["triangulation"]["registered"] == 8 and (res.rgb == 9).all()
     np.testing.assert_array_equal(resolve_seed_points(init, frame, tri, key).xyz, res.xyz)  # cached
+
     # a checkpoint-loading pipeline neither triangulates nor keys the triangulation (no image loading)
-    never = lambda: pytest.fail("keyed the triangulation")
+    def never():
+        pytest.fail("keyed the triangulation")
+
     assert resolve_seed_points(init, frame, tri, never, compute=False).xyz is None and calls == [1]
-    failed = lambda: (np.zeros((0, 3)), np.zeros((0, 3), np.uint8), {"error": "0 verified pairs"})
+
+    def failed():
+        return np.zeros((0, 3)), np.zeros((0, 3), np.uint8), {"error": "0 verified pairs"}
+
     res = resolve_seed_points(init, frame, failed, lambda: {"k": 2})
     assert res.xyz is None and "0 verified pairs" in res.summary["reason"]
     off = PointInitConfig(triangulate=False)

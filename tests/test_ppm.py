@@ -6,8 +6,8 @@ from collections import defaultdict
 import numpy as np
 import pytest
 
-from naka_gs_plugin.points.align import AlignmentError, apply_sim3, match_names, umeyama
 from naka_gs_plugin.points import ppm
+from naka_gs_plugin.points.align import AlignmentError, apply_sim3, match_names, umeyama
 from naka_gs_plugin.points.ppm import progressive_prune, run_ppm, voxel_pool
 
 

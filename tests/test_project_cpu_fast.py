@@ -109,9 +109,7 @@ def test_sh_colors_match_reference_float64(degree, per_camera):
 def test_camera_gradients_defer_to_the_reference():
     scene = make_scene(50, 30, 20, n_cams=1, dtype=F64, seed=2)
     viewmats = scene["viewmats"].clone().requires_grad_()
-    proj = fast.project_gaussians(
-        scene["means"], scene["quats"], scene["scales"], viewmats, scene["Ks"], 30, 20
-    )
+    proj = fast.project_gaussians(scene["means"], scene["quats"], scene["scales"], viewmats, scene["Ks"], 30, 20)
     colors = fast.sh_colors(scene["means"], scene["colors"], viewmats, 3)
     (proj.means2d.sum() + colors.sum()).backward()
     assert viewmats.grad is not None and viewmats.grad.abs().max() > 0

@@ -282,8 +282,8 @@ def test_half_precision_is_refused():
 def _train(rasterizer, toy_scene, steps=30):
     """``steps`` of splatfacto training (with densification) on the toy scene; returns the model
     and its last loss."""
-    from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig
     from naka_gs_plugin.data.images import read_rgb
+    from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig
     from naka_gs_plugin.model.naka_gs_model import NakaGSModelConfig
 
     out = LowLightDataParserConfig(data=toy_scene, downscale_factor=1).setup().get_dataparser_outputs("train")

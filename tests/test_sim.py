@@ -232,7 +232,11 @@ def test_point_cloud_noise_outliers_and_clusters(tmp_path):
         ([{"exposure": {"factor": -0.1}}], None, "effects[0].exposure.factor"),
         ([], {"procedural": {**TINY, "n_train": 0}}, "source.procedural.n_train"),
         ([], {"capture": {"path": "no/such/scene"}}, "source.capture.path"),
-        ([{"quantize": {}}, {"jpeg": {"quality": 90}}, {"noise": {"read_std": "lots"}}], None, "effects[2].noise.read_std"),
+        (
+            [{"quantize": {}}, {"jpeg": {"quality": 90}}, {"noise": {"read_std": "lots"}}],
+            None,
+            "effects[2].noise.read_std",
+        ),
     ],
 )
 def test_bad_specs_fail_with_one_line_naming_file_and_field(tmp_path, effects, source, field):

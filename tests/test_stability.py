@@ -211,15 +211,26 @@ def test_rasterizer_hard_cases(case, backend):
     viewmats, Ks, width, height = _camera()
     background = torch.tensor([[0.2, 0.4, 0.6]])
     colors, alphas, meta = BACKENDS[backend](
-        params["means"], params["quats"], params["scales"], torch.sigmoid(params["opacities"]), params["colors"],
-        viewmats, Ks, width, height, backgrounds=background, absgrad=True,
+        params["means"],
+        params["quats"],
+        params["scales"],
+        torch.sigmoid(params["opacities"]),
+        params["colors"],
+        viewmats,
+        Ks,
+        width,
+        height,
+        backgrounds=background,
+        absgrad=True,
     )
     assert colors.shape == (1, height, width, 3) and alphas.shape == (1, height, width, 1)
     assert torch.isfinite(colors).all() and torch.isfinite(alphas).all()
     assert alphas.min() >= 0 and alphas.max() <= 1
     if case in ("behind-camera", "far-outside-frustum", "empty-scene", "opacity-logit-30"):
         # Nothing visible: the background everywhere.
-        assert alphas.max() < 1 / 255 and torch.allclose(colors, background.view(1, 1, 1, 3).expand_as(colors), atol=1e-2)
+        assert alphas.max() < 1 / 255 and torch.allclose(
+            colors, background.view(1, 1, 1, 3).expand_as(colors), atol=1e-2
+        )
     if case == "100k-tiny-in-one-pixel":
         # One pixel saturates (compositing stops once transmittance < 1e-4); every other pixel is empty.
         alpha = alphas[0, ..., 0]

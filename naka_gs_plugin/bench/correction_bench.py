@@ -26,7 +26,6 @@ from typing import List, Sequence, Tuple
 
 import numpy as np
 
-
 DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 BORDER = 16
 """Pixels excluded at each image border for the interior difference."""
@@ -98,7 +97,9 @@ def run_child(
     if timing:
         low, naka = low_and_naka(image)
         if resolution_scale != 1.0:
-            low, naka = (torch.nn.functional.interpolate(t, scale_factor=resolution_scale, mode="area") for t in (low, naka))
+            low, naka = (
+                torch.nn.functional.interpolate(t, scale_factor=resolution_scale, mode="area") for t in (low, naka)
+            )
         runner(low[..., :64, :64], naka[..., :64, :64])  # warm-up (oneDNN primitive creation)
         rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
         walls, cpus = [], []
@@ -150,6 +151,14 @@ def set_means(scores: Sequence[dict], name: str) -> Tuple[float, float]:
 if __name__ == "__main__":  # internal: ``--child MODE IMAGE WEIGHTS OUT_DIR TIMING QUALITY THREADS REPEATS SCALE``
     mode, image, weights, out_dir, timing, quality, threads, repeats, scale = sys.argv[2:11]
     result = run_child(
-        mode, Path(image), weights, Path(out_dir), timing == "1", quality == "1", int(threads), int(repeats), float(scale)
+        mode,
+        Path(image),
+        weights,
+        Path(out_dir),
+        timing == "1",
+        quality == "1",
+        int(threads),
+        int(repeats),
+        float(scale),
     )
     print(json.dumps(result))

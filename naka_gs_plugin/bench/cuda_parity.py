@@ -269,9 +269,7 @@ def render_all(render: Renderer, scene: Scene, device: str, rasterize_mode: str,
     a second pass (kept apart so that cpu-fast's compiled projection is what the first pass tests)."""
     weights = loss_weights(scene, seed)
     out = render_and_backprop(render, scene, device, rasterize_mode, weights, GRAD_INPUTS)
-    out["d viewmats"] = render_and_backprop(render, scene, device, rasterize_mode, weights, ("viewmats",))[
-        "d viewmats"
-    ]
+    out["d viewmats"] = render_and_backprop(render, scene, device, rasterize_mode, weights, ("viewmats",))["d viewmats"]
     return out
 
 

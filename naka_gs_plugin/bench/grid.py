@@ -85,7 +85,9 @@ def load_grid(path: Path) -> GridSpec:
     raw = yaml.safe_load(path.read_text()) or {}
     unknown = set(raw) - {"name", "scenes", "milestones", "base", "families", "seed"}
     if unknown:
-        raise BenchSpecError(f"{path}: unknown keys {sorted(unknown)} -- allowed: name, scenes, milestones, base, families, seed")
+        raise BenchSpecError(
+            f"{path}: unknown keys {sorted(unknown)} -- allowed: name, scenes, milestones, base, families, seed"
+        )
     for key in ("scenes", "milestones", "families"):
         if not raw.get(key):
             raise BenchSpecError(f"{path}: '{key}' is missing or empty -- see configs/bench/smoke.yaml for the format")
@@ -95,7 +97,9 @@ def load_grid(path: Path) -> GridSpec:
     scenes = {}
     for name, scene in raw["scenes"].items():
         if not isinstance(scene, dict) or len({"data", "sim"} & set(scene)) != 1:
-            raise BenchSpecError(f"{path}: scene '{name}' needs exactly one of 'data: <scene dir>' or 'sim: <spec yaml>'")
+            raise BenchSpecError(
+                f"{path}: scene '{name}' needs exactly one of 'data: <scene dir>' or 'sim: <spec yaml>'"
+            )
         scenes[name] = dict(scene)
     families = {name: dict(f or {}) for name, f in raw["families"].items()}
     spec = GridSpec(
@@ -111,7 +115,11 @@ def load_grid(path: Path) -> GridSpec:
     from naka_gs_plugin.config import naka_gs_method
 
     probe = copy.deepcopy(naka_gs_method.config)
-    for settings in [spec.base, *spec.families.values(), *({k: v for k, v in s.items() if k not in ("data", "sim")} for s in scenes.values())]:
+    for settings in [
+        spec.base,
+        *spec.families.values(),
+        *({k: v for k, v in s.items() if k not in ("data", "sim")} for s in scenes.values()),
+    ]:
         for key, value in settings.items():
             try:
                 set_setting(probe, key, value)
@@ -189,7 +197,9 @@ def run_one(run: Dict[str, Any], out: Path) -> Dict[str, Any]:
     stages["setup_s"] += time.perf_counter() - t
     # The scores are on the test split (the val split can be a single view, as in LOM), loaded and
     # undistorted by nerfstudio's own datamanager exactly as ns-eval does.
-    test_views = config.pipeline.datamanager.setup(device=pipeline.device, test_mode="test").fixed_indices_eval_dataloader
+    test_views = config.pipeline.datamanager.setup(
+        device=pipeline.device, test_mode="test"
+    ).fixed_indices_eval_dataloader
     enhancer_run = dict(getattr(pipeline.datamanager, "enhancer").last_run)
     stages["enhance_s"] = float(enhancer_run.get("naka_seconds", enhancer_run.get("seconds", 0.0)))
     stages["correction_s"] = float(enhancer_run.get("correction_seconds", 0.0))
@@ -277,7 +287,9 @@ def _scene_dir(source: Dict[str, str], spec: GridSpec, out: Path) -> Path:
     if "data" in source:
         path = _resolve(source["data"], spec.path)
         if not (path / "transforms_test.json").exists():
-            raise BenchSpecError(f"{spec.path}: scene {path} has no transforms_test.json -- the grid needs scenes with test views")
+            raise BenchSpecError(
+                f"{spec.path}: scene {path} has no transforms_test.json -- the grid needs scenes with test views"
+            )
         return path
     from naka_gs_plugin.sim.generate import generate
     from naka_gs_plugin.sim.spec import load_spec
@@ -414,7 +426,14 @@ def plot(results: Dict[str, Any], out: Path) -> None:
             if kind == "seconds" and allpts:
                 front = sorted(allpts[i] for i in pareto(allpts))
                 ax.step([p[0] for p in front], [p[1] for p in front], where="post", color="k", lw=1, ls="--")
-                ax.scatter([p[0] for p in front], [p[1] for p in front], s=60, facecolors="none", edgecolors="k", label="Pareto front")
+                ax.scatter(
+                    [p[0] for p in front],
+                    [p[1] for p in front],
+                    s=60,
+                    facecolors="none",
+                    edgecolors="k",
+                    label="Pareto front",
+                )
             ax.set_title(scene)
             ax.set_xlabel("seconds (setup + training)" if kind == "seconds" else "training steps")
             ax.set_ylabel("test PSNR (dB)")

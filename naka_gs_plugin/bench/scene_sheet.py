@@ -22,7 +22,6 @@ from nerfstudio.cameras.camera_utils import quaternion_from_matrix, quaternion_m
 from nerfstudio.cameras.cameras import Cameras
 from torch import Tensor
 
-
 COLUMNS = ("enhanced training view", "render at that pose", "render halfway to the next view")
 
 
@@ -52,6 +51,7 @@ def trained_pose(model, cameras: Cameras, idx: int) -> Float[Tensor, "3 4"]:
     camera.metadata = {"cam_idx": idx}
     with torch.no_grad():
         return model.camera_optimizer.apply_to_camera(camera)[0]
+
 
 def render_at(model, cameras: Cameras, idx: int, c2w: Float[Tensor, "3 4"]) -> Float[Tensor, "H W 3"]:
     """sRGB [0, 1] render with camera ``idx``'s intrinsics at pose ``c2w`` (OpenGL camera-to-world)."""

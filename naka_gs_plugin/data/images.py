@@ -20,7 +20,6 @@ import numpy as np
 from jaxtyping import Float
 from PIL import Image, ImageFile
 
-
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 """Image file endings the plugin reads (compare with ``Path.suffix.lower()``)."""
 
@@ -55,9 +54,7 @@ def read_raw(path: Path) -> np.ndarray:
         raise ImageReadError(f"{path}: empty file (0 bytes) -- {_RESTORE}")
     arr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED | cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
     if arr is None:
-        raise ImageReadError(
-            f"{path}: unreadable image (truncated, corrupt or not a PNG/JPEG/TIFF) -- {_RESTORE}"
-        )
+        raise ImageReadError(f"{path}: unreadable image (truncated, corrupt or not a PNG/JPEG/TIFF) -- {_RESTORE}")
     if data[:3] == b"\xff\xd8\xff":
         _check_jpeg_complete(path, data)
     if arr.size == 0:

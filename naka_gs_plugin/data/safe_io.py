@@ -123,7 +123,8 @@ def check_replaceable(out: Path, option: str, overwrite: Optional[bool]) -> None
     extra = foreign_files(out)
     if extra:
         raise UnsafeOutputError(
-            f"{option} {out}: holds {extra[0]}" + (f" and {len(extra) - 1} more" if len(extra) > 1 else "")
+            f"{option} {out}: holds {extra[0]}"
+            + (f" and {len(extra) - 1} more" if len(extra) > 1 else "")
             + f", which naka-gs did not write -- move it out or choose another {option}"
         )
 

@@ -54,6 +54,7 @@ from naka_gs_plugin.shipped import config_file
 CONSOLE = Console(width=120)
 """The trainer's console (rich's, as nerfstudio's: this module imports without nerfstudio)."""
 
+
 @dataclass
 class TrainConfig:
     """Training of the correction network (defaults: the reference recipe, 200 epochs)."""

@@ -282,7 +282,9 @@ def _threads_as_torch(fn):
 
 
 def _fits(x: Tensor, residual: Optional[Tensor]) -> bool:
-    return supported(x) and (residual is None or (residual.shape == x.shape and residual.dtype == x.dtype and supported(residual)))
+    return supported(x) and (
+        residual is None or (residual.shape == x.shape and residual.dtype == x.dtype and supported(residual))
+    )
 
 
 @_threads_as_torch

@@ -25,9 +25,9 @@ from nerfstudio.configs.base_config import InstantiateConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 
+from naka_gs_plugin.cpu import fit_threads
 from naka_gs_plugin.data.cache import content_hash, default_cache_dir
 from naka_gs_plugin.data.safe_io import atomic_write, usable_cache_dir
-from naka_gs_plugin.cpu import fit_threads
 from naka_gs_plugin.enhance.correction import (
     DEFAULT_MODE,
     DEFAULT_WEIGHTS,
@@ -122,7 +122,9 @@ class Enhancer:
         self.last_run = {"computed": 0, "cached": 0, "seconds": 0.0}
         """Counts of the last :meth:`enhance_images` call: images computed vs read from cache."""
         if config.sigma != "auto" and not (isinstance(config.sigma, (int, float)) and config.sigma > 0):
-            raise ValueError(f"--pipeline.datamanager.enhance.sigma must be > 0 or auto, got {config.sigma!r} (default 0.05)")
+            raise ValueError(
+                f"--pipeline.datamanager.enhance.sigma must be > 0 or auto, got {config.sigma!r} (default 0.05)"
+            )
         if config.exposure != "none" and not (isinstance(config.exposure, (int, float)) and 0 < config.exposure < 1):
             raise ValueError(
                 f"--pipeline.datamanager.enhance.exposure must be in (0, 1) or none, got {config.exposure!r} (default {MIDDLE_GREY})"

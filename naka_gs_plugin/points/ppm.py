@@ -230,8 +230,15 @@ def run_ppm(
     vxyz, vrgb = voxel_pool(xyz, rgb, voxel)
     t2 = time.perf_counter()
     pxyz, prgb, stats = progressive_prune(
-        vxyz, vrgb, tau0=tau0, beta=beta, iterations=iterations, min_points=min_points,
-        eps=eps, seed=seed, tau_update=tau_update,
+        vxyz,
+        vrgb,
+        tau0=tau0,
+        beta=beta,
+        iterations=iterations,
+        min_points=min_points,
+        eps=eps,
+        seed=seed,
+        tau_update=tau_update,
     )
     t3 = time.perf_counter()
     summary = {

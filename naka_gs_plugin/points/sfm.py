@@ -148,7 +148,8 @@ def c2w_opencv_of(image: pycolmap.Image) -> Float[np.ndarray, "4 4"]:
     return c2w
 
 
-def _angle_deg(rotations: Float[np.ndarray, "N 3 3"]) -> Float[np.ndarray, "N"]:
+# " N": with the leading space linters read the one-axis shape as a string, not as the name N
+def _angle_deg(rotations: Float[np.ndarray, "N 3 3"]) -> Float[np.ndarray, " N"]:
     return np.degrees(np.arccos(np.clip((np.trace(rotations, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)))
 
 

@@ -52,13 +52,22 @@ class Bench:
         results.setdefault("runs", {})
         results["machine"] = machine_description()
         if not self.report_only:
-            runs = [r for r in grid_runs(spec, out) if not self.only or r["id"] in self.only or r["family"] in self.only]
+            runs = [
+                r for r in grid_runs(spec, out) if not self.only or r["id"] in self.only or r["family"] in self.only
+            ]
             todo = []
             for r in runs:
                 done = results["runs"].get(r["id"])
-                if done is None or (self.retry_failed and done["status"] == "failed") or done.get("settings") != r["settings"] or done.get("milestones") != r["milestones"]:
+                if (
+                    done is None
+                    or (self.retry_failed and done["status"] == "failed")
+                    or done.get("settings") != r["settings"]
+                    or done.get("milestones") != r["milestones"]
+                ):
                     todo.append(r)
-            CONSOLE.print(f"[naka-gs bench] {spec.name}: {len(runs)} runs, {len(runs) - len(todo)} already done", markup=False)
+            CONSOLE.print(
+                f"[naka-gs bench] {spec.name}: {len(runs)} runs, {len(runs) - len(todo)} already done", markup=False
+            )
             with StageProgress() as progress:
                 task = progress.add_task("grid", total=len(todo))
                 for r in todo:
@@ -69,7 +78,9 @@ class Bench:
         results_path.write_text(json.dumps(results, indent=1))
         (out / "results.md").write_text(markdown_table(results))
         plot(results, out)
-        CONSOLE.print(f"[naka-gs bench] wrote {results_path}, results.md, psnr_vs_seconds.png, psnr_vs_steps.png", markup=False)
+        CONSOLE.print(
+            f"[naka-gs bench] wrote {results_path}, results.md, psnr_vs_seconds.png, psnr_vs_steps.png", markup=False
+        )
         return results
 
 

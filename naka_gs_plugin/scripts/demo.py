@@ -32,8 +32,8 @@ from PIL import Image
 from naka_gs_plugin.data.images import read_rgb
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
 from naka_gs_plugin.metrics import psnr
-from naka_gs_plugin.shipped import CONFIGS
 from naka_gs_plugin.sheet import contact_sheet
+from naka_gs_plugin.shipped import CONFIGS
 from naka_gs_plugin.sim.generate import generate
 from naka_gs_plugin.sim.spec import load_spec
 

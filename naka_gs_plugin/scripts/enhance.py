@@ -106,7 +106,9 @@ class Enhance:
             rows = [[im.numpy() for im in images[:k]]]
             if self.enhance.method == "naka" and self.enhance.correction != "none":
                 naka_only = Enhancer(dataclasses.replace(self.enhance, correction="none"))
-                rows.append([im.numpy() for im in naka_only.enhance_images(images[:k], description="Naka only (sheet)")])
+                rows.append(
+                    [im.numpy() for im in naka_only.enhance_images(images[:k], description="Naka only (sheet)")]
+                )
             rows.append([im.numpy() for im in enhanced[:k]])
             sheet = contact_sheet(rows)
             Image.fromarray(sheet).save(stage / "before_after.png")

@@ -30,7 +30,9 @@ def entrypoint(args: Optional[Sequence[str]] = None) -> None:
     if "--config" in argv:
         i = argv.index("--config")
         if i + 1 >= len(argv):
-            raise SystemExit("naka-gs-train-correction: --config needs a YAML path, e.g. configs/correction/default.yaml")
+            raise SystemExit(
+                "naka-gs-train-correction: --config needs a YAML path, e.g. configs/correction/default.yaml"
+            )
         try:
             default = TrainCorrection(**vars(config_from_yaml(Path(argv[i + 1]))))
         except (FileNotFoundError, ValueError, TypeError) as err:

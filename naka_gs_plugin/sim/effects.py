@@ -131,4 +131,3 @@ def write_image(path: Path, encoded: Float[Tensor, "H W 3"], effects: Sequence[E
         img.save(path, format="JPEG", quality=jpeg.quality)
     else:
         img.save(path, format="PNG")
-

@@ -46,8 +46,10 @@ def noise_line(img: Float[np.ndarray, "H W 3"], patch: int = 8, bins: int = 12) 
     box = sum(pad[i : i + grey.shape[0], j : j + grey.shape[1]] for i in range(3) for j in range(3)) / 9.0
     resid = grey - box
     h, w = (grey.shape[0] // patch) * patch, (grey.shape[1] // patch) * patch
+
     def tiles(a: np.ndarray) -> np.ndarray:
         return a[:h, :w].reshape(h // patch, patch, w // patch, patch).swapaxes(1, 2).reshape(-1, patch * patch)
+
     means, varis = tiles(grey).mean(1), tiles(resid).var(1) * 9.0 / 8.0
     keep = (means > 0.002) & (means < 0.95)
     means, varis = means[keep], varis[keep]

@@ -47,18 +47,14 @@ def look_at(eye: np.ndarray, target: np.ndarray) -> Float[np.ndarray, "4 4"]:
     return c2w
 
 
-def place_lamps(
-    rng: np.random.Generator, count: int, center: np.ndarray, radius: float
-) -> Float[np.ndarray, "L 3"]:
+def place_lamps(rng: np.random.Generator, count: int, center: np.ndarray, radius: float) -> Float[np.ndarray, "L 3"]:
     """``count`` lamp positions uniform in the ball of ``radius`` around ``center`` (world units)."""
     direction = rng.normal(size=(count, 3))
     direction /= np.linalg.norm(direction, axis=1, keepdims=True).clip(min=1e-12)
     return center + direction * radius * rng.uniform(size=(count, 1)) ** (1.0 / 3.0)
 
 
-def lamp_image(
-    view: View, lamps: Float[np.ndarray, "L 3"], intensity: float, radius: float
-) -> Float[Tensor, "H W 3"]:
+def lamp_image(view: View, lamps: Float[np.ndarray, "L 3"], intensity: float, radius: float) -> Float[Tensor, "H W 3"]:
     """Linear radiance of the lamps seen by ``view``: Gaussian cores of world ``radius``, no occlusion."""
     ys, xs = np.mgrid[0 : view.height, 0 : view.width] + 0.5
     out = np.zeros((view.height, view.width))
