@@ -1,7 +1,7 @@
 """Correction-network inference benchmark: time, peak memory and quality of every inference mode.
 
-Each mode runs in a fresh process (so its peak RSS, ``ru_maxrss``, is its own) on one image, default
-a 1764x1172 RealX3D view (``--resolution-scale 0.5``: 882x586): wall and CPU seconds of
+Each mode runs in a fresh process (so its peak RSS is its own: :mod:`naka_gs_plugin.bench.harness`)
+on one image, default a 1764x1172 RealX3D view (``--resolution-scale 0.5``: 882x586): wall and CPU seconds of
 ``CorrectionRunner`` on the (low, Naka) pair after a small warm-up, peak RSS of the whole process, and
 the difference of its output to the ``exact`` mode (max and mean abs, and max abs at least 16 px
 inside the borders). ``exact`` -- the authors' architecture as a plain float32 NCHW forward -- is
@@ -18,13 +18,13 @@ from __future__ import annotations
 
 import json
 import os
-import resource
-import sys
 import time
 from pathlib import Path
 from typing import List, Sequence, Tuple
 
 import numpy as np
+
+from naka_gs_plugin.bench.harness import peak_rss
 
 DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 BORDER = 16
@@ -101,7 +101,7 @@ def run_child(
                 torch.nn.functional.interpolate(t, scale_factor=resolution_scale, mode="area") for t in (low, naka)
             )
         runner(low[..., :64, :64], naka[..., :64, :64])  # warm-up (oneDNN primitive creation)
-        rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
+        rss_before = peak_rss() / 1e9
         walls, cpus = [], []
         for _ in range(repeats):
             cpu, wall = time.process_time(), time.perf_counter()
@@ -112,7 +112,7 @@ def run_child(
             seconds=float(np.median(walls)),
             cpu_seconds=float(np.median(cpus)),
             threads=threads,
-            peak_gb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6,
+            peak_gb=peak_rss() / 1e9,
             rss_before_gb=rss_before,
             load_average=os.getloadavg()[0],
             size=list(low.shape[-2:]),
@@ -146,19 +146,3 @@ def run_child(
 def set_means(scores: Sequence[dict], name: str) -> Tuple[float, float]:
     sel = [s for s in scores if s["set"] == name]
     return float(np.mean([s["psnr"] for s in sel])), float(np.mean([s["ssim"] for s in sel]))
-
-
-if __name__ == "__main__":  # internal: ``--child MODE IMAGE WEIGHTS OUT_DIR TIMING QUALITY THREADS REPEATS SCALE``
-    mode, image, weights, out_dir, timing, quality, threads, repeats, scale = sys.argv[2:11]
-    result = run_child(
-        mode,
-        Path(image),
-        weights,
-        Path(out_dir),
-        timing == "1",
-        quality == "1",
-        int(threads),
-        int(repeats),
-        float(scale),
-    )
-    print(json.dumps(result))

@@ -2,8 +2,8 @@
 
 Cloud (x ``--scale``): 700k points on the surface z = 0.1 sin(3x) over [-1, 1]^2, 250k in a
 sigma = 0.002 cluster and 50k uniform outliers in [-3, 3]^3, seed 0, shuffled. Each (implementation,
-size) runs in a fresh process so peak RSS (``ru_maxrss``) is its own; the figure printed is the
-increase caused by the PPM call (input generation excluded). The reference, :func:`reference_ppm`,
+size) runs in a fresh process so its peak RSS is its own (:mod:`naka_gs_plugin.bench.harness`); the
+figure printed is the increase caused by the PPM call (input generation excluded). The reference, :func:`reference_ppm`,
 is the authors' algorithm as documented (``method-facts.md`` section 5) written the plain NumPy /
 SciPy way: ``np.unique`` voxel keys, ``np.add.at`` sums, a fresh ``cKDTree`` every iteration. Both
 produce the same points (checked); the printed ratio is measured here, on this CPU.
@@ -11,17 +11,14 @@ produce the same points (checked); the printed ratio is measured here, on this C
 
 from __future__ import annotations
 
-import json
 import math
 import os
-import resource
-import subprocess
-import sys
 import time
 from typing import Sequence, Tuple
 
 import numpy as np
 
+from naka_gs_plugin.bench.harness import peak_rss, reset_peak_rss, run_isolated
 from naka_gs_plugin.bench.machine import describe_cpu
 
 
@@ -83,14 +80,14 @@ def run_one(scale: int, impl: str) -> dict:
     from naka_gs_plugin.points.ppm import run_ppm
 
     xyz, rgb = make_cloud(scale)
-    rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    rss_before = reset_peak_rss()
     start = time.perf_counter()
     if impl == "ours":
         pts, _, summary = run_ppm(xyz, rgb)
     else:
         pts, _ = reference_ppm(xyz, rgb)
     seconds = time.perf_counter() - start
-    rss_after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    rss_after = peak_rss()
     order = np.lexsort(pts.T[::-1])
     return {
         "impl": impl,
@@ -99,7 +96,7 @@ def run_one(scale: int, impl: str) -> dict:
         "kept": len(pts),
         "checksum": float(np.round(pts[order][:: max(1, len(pts) // 1000)].sum(), 6)),
         "timings_s": summary["timings_s"] if impl == "ours" else None,
-        "peak_rss_increase_gb": (rss_after - rss_before) / 1e6,
+        "peak_rss_increase_gb": (rss_after - rss_before) / 1e9,
         "load_average": os.getloadavg()[0],
     }
 
@@ -110,13 +107,7 @@ def compare(scales: Sequence[int], reference: bool) -> None:
     for scale in scales:
         runs = {}
         for impl in ("ours", "reference") if reference else ("ours",):
-            out = subprocess.run(
-                [sys.executable, "-m", "naka_gs_plugin.bench.ppm_bench", "--child", str(scale), impl],
-                capture_output=True,
-                text=True,
-                check=True,
-            ).stdout
-            runs[impl] = json.loads(out.strip().splitlines()[-1])
+            runs[impl] = run_isolated(run_one, scale, impl)
         r = runs["ours"]
         line = (
             f"{r['points']:,} points: ours {r['seconds']:.3f} s (pool {r['timings_s']['voxel_pool']:.3f} s, "
@@ -130,7 +121,3 @@ def compare(scales: Sequence[int], reference: bool) -> None:
                 f"ours {ref['seconds'] / r['seconds']:.1f}x faster ({same})"
             )
         print(f"{line}; load {r['load_average']:.2f}", flush=True)
-
-
-if __name__ == "__main__":  # internal: ``--child SCALE IMPL``, one timed run in this process (see compare)
-    print(json.dumps(run_one(int(sys.argv[2]), sys.argv[3])))

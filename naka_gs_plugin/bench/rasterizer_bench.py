@@ -1,11 +1,10 @@
 """Benchmark the CPU rasterizers: compiled cpu-fast vs our torch path vs the dense reference.
 
 Every case (method x Gaussians x resolution x threads) runs in a fresh spawned process, so each
-one's peak memory is its own: "peak MB" is the kernel's peak resident set size of the process
-(``VmHWM``, reset through ``/proc/self/clear_refs`` just before the first render) minus its
+one's peak memory is its own (:mod:`naka_gs_plugin.bench.harness`): "peak MB" is the kernel's peak
+resident set size of the process (``VmHWM``, reset just before the first render) minus its
 resident size at that moment, i.e. the extra host memory the renders (forward and backward,
-including allocator caches) needed at their peak. (``getrusage``'s ``ru_maxrss`` would be wrong
-here: Linux carries the parent's value across fork and exec.) On CUDA it is
+including allocator caches) needed at their peak. On CUDA it is
 ``torch.cuda.max_memory_allocated`` instead. cpu-fast's kernels are compiled or loaded from numba's
 disk cache before the clock starts; the compile time is reported separately (a process with an
 empty ``NUMBA_CACHE_DIR``, then one loading that cache). Timings are only meaningful on an
@@ -38,7 +37,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import multiprocessing
 import os
 import statistics
 import tempfile
@@ -50,6 +48,7 @@ import torch
 from rich.console import Console
 from rich.table import Table
 
+from naka_gs_plugin.bench.harness import peak_rss, reset_peak_rss, run_isolated
 from naka_gs_plugin.bench.machine import describe_cpu
 
 SH_DEGREE = 3
@@ -145,21 +144,6 @@ def scene_stats(scene: Dict, width: int, height: int) -> Tuple[float, int]:
     return float(proj.radii[0][visible].float().mean()), pairs
 
 
-def _proc_status_bytes(field: str) -> int:
-    with open("/proc/self/status") as status:
-        for line in status:
-            if line.startswith(field + ":"):
-                return int(line.split()[1]) * 1024  # reported in kB
-    raise RuntimeError(f"{field} missing from /proc/self/status")
-
-
-def _reset_peak_rss() -> int:
-    """Reset the kernel's peak-RSS mark of this process to its current RSS, and return that."""
-    with open("/proc/self/clear_refs", "w") as clear_refs:
-        clear_refs.write("5")
-    return _proc_status_bytes("VmRSS")
-
-
 def _sync(device: str) -> None:
     if device.startswith("cuda"):
         torch.cuda.synchronize()
@@ -230,7 +214,7 @@ def _run_case(method: str, n: int, width: int, height: int, threads: int, cfg: B
         torch.cuda.reset_peak_memory_stats()
         base = torch.cuda.memory_allocated()
     else:
-        base = _reset_peak_rss()
+        base = reset_peak_rss()
     result: Dict = {"method": method, "gaussians": n, "width": width, "height": height, "threads": threads}
     if method != "dense" or n * width * height <= cfg.dense_budget:
         result["fwd_s"], result["fwd_bwd_s"] = _time_renders(scene, width, height, method, cfg.repeats, device)
@@ -252,7 +236,7 @@ def _run_case(method: str, n: int, width: int, height: int, threads: int, cfg: B
     if device.startswith("cuda"):
         result["peak_mb"] = (torch.cuda.max_memory_allocated() - base) / 2**20
     else:
-        result["peak_mb"] = (_proc_status_bytes("VmHWM") - base) / 2**20
+        result["peak_mb"] = (peak_rss() - base) / 2**20
     return result
 
 
@@ -333,22 +317,14 @@ def _compile_seconds(cache_dir: str) -> float:
     return warm_up(torch.float32)
 
 
-def _run_isolated(pool_ctx, fn, *args):
-    from concurrent.futures import ProcessPoolExecutor
-
-    with ProcessPoolExecutor(max_workers=1, mp_context=pool_ctx) as pool:
-        return pool.submit(fn, *args).result()
-
-
 def run_cases(cfg: BenchConfig) -> Dict:
     """Run every case, each in a fresh spawned process."""
-    ctx = multiprocessing.get_context("spawn")
     console = Console(stderr=True)
     out: Dict = {}
     with tempfile.TemporaryDirectory() as cache_dir:
         console.log("cpu-fast kernels: cold compile, then cache load ...")
-        out["compile_s"] = _run_isolated(ctx, _compile_seconds, cache_dir)
-        out["cache_load_s"] = _run_isolated(ctx, _compile_seconds, cache_dir)
+        out["compile_s"] = run_isolated(_compile_seconds, cache_dir)
+        out["cache_load_s"] = run_isolated(_compile_seconds, cache_dir)
     rows = []
     for res in cfg.resolutions:
         width, height = (int(v) for v in res.lower().split("x"))
@@ -360,10 +336,10 @@ def run_cases(cfg: BenchConfig) -> Dict:
                     row[method] = None
                     continue
                 console.log(f"{method} {n} Gaussians at {res}, {cfg.threads} threads ...")
-                row[method] = _run_isolated(ctx, _run_case, method, n, width, height, cfg.threads, cfg)
+                row[method] = run_isolated(_run_case, method, n, width, height, cfg.threads, cfg)
             if cfg.threads != 1:
                 console.log(f"cpu-fast {n} Gaussians at {res}, 1 thread ...")
-                row["cpu-fast-1"] = _run_isolated(ctx, _run_case, "cpu-fast", n, width, height, 1, cfg)
+                row["cpu-fast-1"] = run_isolated(_run_case, "cpu-fast", n, width, height, 1, cfg)
             rows.append(row)
     out["rows"] = rows
     width, height = (int(v) for v in cfg.viewer_resolution.lower().split("x"))
@@ -372,12 +348,12 @@ def run_cases(cfg: BenchConfig) -> Dict:
         for method in ("cpu-fast", "torch"):
             console.log(f"viewer frame: {method} {n} Gaussians at {cfg.viewer_resolution} ...")
             args = (method, n, width, height, cfg.threads, cfg.repeats)
-            out["viewer"].append(_run_isolated(ctx, _viewer_frame, *args))
+            out["viewer"].append(run_isolated(_viewer_frame, *args))
     n_text, res = cfg.profile_case.split("@")
     width, height = (int(v) for v in res.lower().split("x"))
     console.log(f"cpu-fast stage profile at {cfg.profile_case} ...")
     profile_args = (int(n_text), width, height, cfg.threads, cfg.repeats)
-    out["profile"] = _run_isolated(ctx, _stage_profile, *profile_args)
+    out["profile"] = run_isolated(_stage_profile, *profile_args)
     return out
 
 

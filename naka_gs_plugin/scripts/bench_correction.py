@@ -6,8 +6,6 @@ What is measured, and how, is described in :mod:`naka_gs_plugin.bench.correction
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,7 +14,8 @@ from typing import List, Optional, Sequence, Tuple
 import numpy as np
 import tyro
 
-from naka_gs_plugin.bench.correction_bench import BORDER, DATA, low_and_naka, net_for, set_means
+from naka_gs_plugin.bench.correction_bench import BORDER, DATA, low_and_naka, net_for, run_child, set_means
+from naka_gs_plugin.bench.harness import run_isolated
 from naka_gs_plugin.bench.machine import describe_cpu
 from naka_gs_plugin.enhance.correction import DEFAULT_MODE, MODES
 
@@ -90,25 +89,8 @@ class BenchCorrection:
         results = []
         with tempfile.TemporaryDirectory() as tmp:
             for mode in order:
-                cmd = [
-                    sys.executable,
-                    "-m",
-                    "naka_gs_plugin.bench.correction_bench",
-                    "--child",
-                    mode,
-                    str(self.image),
-                    self.weights,
-                    tmp,
-                    str(int(mode in timed)),
-                    str(int(mode in scored)),
-                    str(self.threads),
-                    str(self.repeats),
-                    str(self.resolution_scale),
-                ]
-                out = subprocess.run(cmd, capture_output=True, text=True)
-                if out.returncode != 0:
-                    raise RuntimeError(f"mode {mode} failed:\n{out.stderr[-2000:]}")
-                r = json.loads(out.stdout.strip().splitlines()[-1])
+                args = (mode, self.image, self.weights, Path(tmp), mode in timed, mode in scored)
+                r = run_isolated(run_child, *args, self.threads, self.repeats, self.resolution_scale)
                 if mode in timed:
                     ref = np.load(Path(tmp) / "exact.npy")
                     diff = np.abs(np.load(Path(tmp) / f"{mode}.npy") - ref)
