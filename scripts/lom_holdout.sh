@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The real-scene protocol (docs/real-scenes.md): leave-one-scene-out over the LOM scenes.
 #   1. for each scene X without them, the correction weights of the shipped recipe with --hold-out X
-#      (outputs/correction-loo/X/best.pt; ~40 min each on a 2-core CPU);
+#      (outputs/correction-loo/X/best.pt; ~17 min each on an idle 2-core CPU);
 #   2. the 2D score of those weights on X's test views (naka-gs-eval-correction, low -> enhanced vs
 #      normal light): outputs/correction-loo/X/eval_2d.json;
 #   3. the 3D grid (default: naka_gs_plugin/configs/bench/lom-holdout.yaml): ns-train naka-gs on X, scored on X's test
