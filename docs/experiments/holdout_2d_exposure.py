@@ -35,4 +35,6 @@ for frame in json.loads((root / "transforms_test.json").read_text())["frames"]:
         rows[key].append((psnr(image, truth), float(ssim)))
 for key, scores in rows.items():
     n = len(scores)
-    print(f"{scene} {key}: PSNR {sum(p for p, _ in scores) / n:.2f} SSIM {sum(s for _, s in scores) / n:.3f} ({n} views)")
+    print(
+        f"{scene} {key}: PSNR {sum(p for p, _ in scores) / n:.2f} SSIM {sum(s for _, s in scores) / n:.3f} ({n} views)"
+    )
