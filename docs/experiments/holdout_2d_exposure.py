@@ -1,6 +1,7 @@
 """2D record for the LOM protocol (docs/real-scenes.md, "2D ... + exposure"): a scene's hold-out weights on
-its test views, low -> Naka -> network, with and without the scene's exposure curve ``x ** g``. ``g`` is the
-exponent the scene's 3D run logged ("exposure lifted to 0.4613 (gamma G)" in its log.txt), so the second
+its test views, low -> Naka -> network -> capture chroma (the default enhancement), with and without the
+scene's exposure curve ``x ** g``, and the network's own colour for comparison. ``g`` is the exponent the
+scene's 3D run logged ("exposure lifted to 0.4613 (gamma G)" in its log.txt), so the second
 row scores exactly the images the 3D model trains towards. Images sRGB in [0, 1]. From the repository root:
     .venv/bin/python docs/experiments/holdout_2d_exposure.py shrub 0.751
 """
@@ -13,6 +14,7 @@ import kornia
 import torch
 
 from naka_gs_plugin.data.images import read_rgb
+from naka_gs_plugin.enhance.chroma import capture_chroma
 from naka_gs_plugin.enhance.checkpoint import load_correction
 from naka_gs_plugin.enhance.correction import CorrectionRunner
 from naka_gs_plugin.enhance.exposure import apply_gamma
@@ -23,14 +25,15 @@ torch.set_grad_enabled(False)
 scene, gamma = sys.argv[1], float(sys.argv[2])
 root = Path("../shared/data/lom") / scene
 runner = CorrectionRunner(load_correction(f"outputs/correction-loo/{scene}/best.pt"), "auto")
-rows = {"network": [], f"network + exposure (g {gamma:.3f})": []}
+rows = {"network": [], "network + capture chroma": [], f"network + capture chroma + exposure (g {gamma:.3f})": []}
 for frame in json.loads((root / "transforms_test.json").read_text())["frames"]:
     name = Path(frame["file_path"]).name
     low = torch.from_numpy(read_rgb(root / "low" / name))
     naka = naka_enhance(low, 0.05)
     enhanced = runner(low.permute(2, 0, 1)[None], naka.permute(2, 0, 1)[None])["enhanced"][0].permute(1, 2, 0)
     truth = torch.from_numpy(read_rgb(root / "high" / name))
-    for key, image in zip(rows, (enhanced.clamp(0, 1), apply_gamma([enhanced], gamma)[0])):
+    chroma = capture_chroma(enhanced, low)
+    for key, image in zip(rows, (enhanced.clamp(0, 1), chroma, apply_gamma([chroma], gamma)[0])):
         ssim = kornia.metrics.ssim(image.permute(2, 0, 1)[None], truth.permute(2, 0, 1)[None], 11).mean()
         rows[key].append((psnr(image, truth), float(ssim)))
 for key, scores in rows.items():

@@ -1,6 +1,6 @@
 """RealX3D by eye, 2D (docs/real-scenes.md): one training view per scene, columns low | Naka | Naka +
-shipped network | + scene exposure (the default), at 1/4 size, and each scene's mean brightness after
-each stage over every 5th training view. Run from the repository root:
+shipped network (its own colour) | + capture chroma | + scene exposure (the default), at 1/4 size, and
+each scene's mean brightness after each stage over every 5th training view. Run from the repository root:
     .venv/bin/python docs/experiments/realx3d_exposure_sheet.py
 """
 
@@ -19,8 +19,9 @@ from naka_gs_plugin.sheet import contact_sheet
 torch.set_grad_enabled(False)
 D = Path(__file__).resolve().parents[3] / "shared" / "data" / "realx3d"
 OUT = Path(__file__).resolve().parents[1] / "img" / "realx3d_exposure_sheet.jpg"
-naka = Enhancer(EnhanceConfig(correction="none", exposure="none", use_cache=False))
-net = Enhancer(EnhanceConfig(exposure="none", use_cache=False))
+naka = Enhancer(EnhanceConfig(correction="none", chroma="network", exposure="none", use_cache=False))
+net = Enhancer(EnhanceConfig(chroma="network", exposure="none", use_cache=False))
+chroma = Enhancer(EnhanceConfig(exposure="none", use_cache=False))
 
 
 def quarter(path: Path) -> torch.Tensor:
@@ -34,13 +35,15 @@ for tj in sorted(D.glob("*/transforms_train.json")):
     low = [quarter(tj.parent / f["file_path"]) for f in frames]
     n = naka.enhance_images(low, description=f"{tj.parent.name} naka")
     c = net.enhance_images(low, description=f"{tj.parent.name} net")
-    g = lift_gamma(c)
-    e = apply_gamma(c, g)
+    h = chroma.enhance_images(low, description=f"{tj.parent.name} capture chroma")
+    g = lift_gamma(h)
+    e = apply_gamma(h, g)
     k = len(low) // 2
-    rows.append([im[k].numpy() for im in (low, n, c, e)])
-    table.append((tj.parent.name, scene_mean(low), scene_mean(n), scene_mean(c), g, scene_mean(e)))
+    rows.append([im[k].numpy() for im in (low, n, c, h, e)])
+    table.append((tj.parent.name, scene_mean(low), scene_mean(n), scene_mean(c), scene_mean(h), g, scene_mean(e)))
 Image.fromarray(contact_sheet(rows, max_width=320)).save(OUT, quality=88)
-print("| scene | low | Naka | + network | exposure gamma | + exposure (default) |\n|---|---|---|---|---|---|")
+print("| scene | low | Naka | + network | + capture chroma | exposure gamma | + exposure (default) |")
+print("|---|---|---|---|---|---|---|")
 for name, *v in table:
-    print(f"| {name} | {v[0]:.3f} | {v[1]:.3f} | {v[2]:.3f} | {v[3]:.2f} | {v[4]:.3f} |")
+    print(f"| {name} | {v[0]:.3f} | {v[1]:.3f} | {v[2]:.3f} | {v[3]:.3f} | {v[4]:.2f} | {v[5]:.3f} |")
 print(f"wrote {OUT}")

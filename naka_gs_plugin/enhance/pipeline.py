@@ -28,6 +28,7 @@ from torch import Tensor
 from naka_gs_plugin.cpu import fit_threads
 from naka_gs_plugin.data.cache import content_hash, default_cache_dir
 from naka_gs_plugin.data.safe_io import atomic_write, usable_cache_dir
+from naka_gs_plugin.enhance.chroma import DEFAULT_BLUR, capture_chroma
 from naka_gs_plugin.enhance.correction import (
     DEFAULT_MODE,
     DEFAULT_WEIGHTS,
@@ -68,6 +69,13 @@ class EnhanceConfig(InstantiateConfig):
     correction: str = "default"
     """Correction network applied after Naka (method ``naka`` only): ``none``, ``default`` (the weights
     shipped in ``naka_gs_plugin/enhance/weights/``) or the path of a checkpoint (ours or the authors')."""
+    chroma: Literal["capture", "network"] = "capture"
+    """Colour of the enhanced views (method ``naka``; :mod:`naka_gs_plugin.enhance.chroma`): ``capture``
+    keeps the enhanced brightness and takes each pixel's chromaticity (linear RGB) from the dark capture,
+    which a shorter exposure does not change; ``network`` keeps the colour Naka + the correction network give."""
+    chroma_blur: float = DEFAULT_BLUR
+    """Gaussian low-pass, in pixels, on the capture before its chromaticity is taken (``chroma capture``):
+    a dark capture's colour is noise at the pixel scale."""
     exposure: Union[float, Literal["none"]] = MIDDLE_GREY
     """Scene exposure after the correction network (:mod:`naka_gs_plugin.enhance.exposure`): when the
     enhanced views' mean is below this sRGB level, one curve ``x ** g`` shared by every view lifts it there
@@ -76,6 +84,11 @@ class EnhanceConfig(InstantiateConfig):
     """Correction inference mode (``naka_gs_plugin.enhance.correction.MODES``): ``auto`` picks the fastest
     one that keeps the quality bar on this CPU (``lean`` with native bfloat16, else ``lean-f32``);
     ``exact`` is the plain float32 full-resolution forward."""
+
+    def __setstate__(self, state: dict) -> None:
+        """Runs saved before ``chroma`` existed trained on the network's colour: their ``config.yml`` keeps it."""
+        state.setdefault("chroma", "network")
+        self.__dict__.update(state)
 
     def correction_path(self) -> Optional[Path]:
         """The checkpoint file of ``correction``, or ``None`` for ``none``."""
@@ -86,7 +99,16 @@ class EnhanceConfig(InstantiateConfig):
     def params(self) -> dict:
         """Everything that changes the output (the cache key's parameter part; with ``sigma auto`` the
         key's image part covers every view, as the value depends on all of them)."""
-        return {"version": CACHE_VERSION, "method": self.method, "sigma": self.sigma, "n": self.n, "stats": self.stats}
+        params = {
+            "version": CACHE_VERSION,
+            "method": self.method,
+            "sigma": self.sigma,
+            "n": self.n,
+            "stats": self.stats,
+        }
+        if self.chroma == "capture":
+            params["chroma_blur"] = self.chroma_blur
+        return params
 
 
 SIGMA_FLOOR = 1e-3
@@ -128,6 +150,14 @@ class Enhancer:
         if config.exposure != "none" and not (isinstance(config.exposure, (int, float)) and 0 < config.exposure < 1):
             raise ValueError(
                 f"--pipeline.datamanager.enhance.exposure must be in (0, 1) or none, got {config.exposure!r} (default {MIDDLE_GREY})"
+            )
+        if config.chroma not in ("capture", "network"):
+            raise ValueError(
+                f"--pipeline.datamanager.enhance.chroma must be capture or network, got {config.chroma!r} (default capture)"
+            )
+        if not (isinstance(config.chroma_blur, (int, float)) and config.chroma_blur > 0):
+            raise ValueError(
+                f"--pipeline.datamanager.enhance.chroma-blur must be > 0 pixels, got {config.chroma_blur!r} (default {DEFAULT_BLUR})"
             )
         if not config.n > 0:
             raise ValueError(f"--pipeline.datamanager.enhance.n must be > 0, got {config.n!r} (default 1.0)")
@@ -241,6 +271,8 @@ class Enhancer:
                         pair = (low.permute(2, 0, 1)[None], enhanced.permute(2, 0, 1)[None])
                         enhanced = runner(*pair)["enhanced"][0].permute(1, 2, 0)
                         correction_s += time.perf_counter() - t
+                    if self.config.chroma == "capture":
+                        enhanced = capture_chroma(enhanced, low, self.config.chroma_blur)
                     # Round to the cache's 16-bit grid so a run is identical with a cold or warm cache.
                     out[i] = (enhanced * 65535.0).round() / 65535.0
                     self._write(keys[i], out[i])
