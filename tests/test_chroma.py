@@ -90,3 +90,9 @@ def test_a_run_saved_before_chroma_existed_keeps_the_network_colour():
     del old.__dict__["chroma"]
     assert yaml.load(yaml.dump(old), Loader=yaml.Loader).chroma == "network"
     assert yaml.load(yaml.dump(EnhanceConfig()), Loader=yaml.Loader).chroma == "capture"
+
+
+def test_images_smaller_than_the_blur_window_work():
+    tiny = _patches()[:2, :3]
+    out = capture_chroma(tiny, tiny * 0.1, blur=3.0)
+    assert out.shape == (2, 3, 3) and torch.isfinite(out).all()

@@ -193,8 +193,9 @@ def _images(n=2, h=40, w=56):
 def test_enhancer_applies_the_correction_and_keys_the_cache(tmp_path):
     ckpt = save_correction(_net(SMALL), tmp_path / "net.pt")
     images = _images()
-    naka_only = Enhancer(EnhanceConfig(correction="none")).enhance_images(images)
-    corrected_enh = Enhancer(EnhanceConfig(correction=str(ckpt), correction_mode="exact"))
+    # chroma network: the correction's own output, without the capture's colour (tests/test_chroma.py)
+    naka_only = Enhancer(EnhanceConfig(correction="none", chroma="network")).enhance_images(images)
+    corrected_enh = Enhancer(EnhanceConfig(correction=str(ckpt), correction_mode="exact", chroma="network"))
     corrected = corrected_enh.enhance_images(images)
     assert corrected_enh.last_run["computed"] == 2
     low = images[0].float() / 255
@@ -208,7 +209,7 @@ def test_enhancer_applies_the_correction_and_keys_the_cache(tmp_path):
     base = keys(correction=str(ckpt), correction_mode="exact")
     assert base != keys(correction="none")
     assert base != keys(correction=str(ckpt), correction_mode="lean-f32")
-    again = Enhancer(EnhanceConfig(correction=str(ckpt), correction_mode="exact"))
+    again = Enhancer(EnhanceConfig(correction=str(ckpt), correction_mode="exact", chroma="network"))
     again.enhance_images(images)
     assert again.last_run["computed"] == 0  # same weights and mode: cached
     save_correction(_net(SMALL, seed=5), ckpt)  # new weights in the same file
@@ -219,7 +220,9 @@ def test_sigma_auto_is_the_scene_mean_and_its_key_covers_every_view():
     images = _images(n=3)
     mean = float(torch.cat([im.double().flatten() / 255 for im in images]).mean())
     assert abs(scene_sigma(images) - mean) < 1e-7 and scene_sigma([torch.zeros(4, 4, 3)]) == 1e-3
-    out = Enhancer(EnhanceConfig(sigma="auto", correction="none", use_cache=False)).enhance_images(images)
+    out = Enhancer(EnhanceConfig(sigma="auto", correction="none", chroma="network", use_cache=False)).enhance_images(
+        images
+    )
     low = images[1].float() / 255
     assert (out[1] - naka_enhance(low, sigma=mean)).abs().max() < 1e-4  # the 16-bit rounding
     assert (out[1] - naka_enhance(low, sigma=0.05)).abs().max() > 1e-2

@@ -11,6 +11,7 @@ import naka_gs_plugin.enhance.pipeline as pipeline_mod
 from naka_gs_plugin.data.images import read_rgb, read_stored
 from naka_gs_plugin.data.lowlight_datamanager import LowLightDatamanagerConfig, MissingGroundTruthError
 from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig
+from naka_gs_plugin.enhance.chroma import capture_chroma
 from naka_gs_plugin.enhance.naka import naka_enhance
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig
 from naka_gs_plugin.scripts.enhance import Enhance
@@ -28,7 +29,8 @@ def _dm(scene, dtype="float32", **enhance):
 def test_train_images_are_naka_enhanced(toy_scene):
     dm = _dm(toy_scene, correction="none")  # Naka alone; the correction net: tests/test_correction_infer.py
     for data, path in zip(dm.cached_train, dm.train_dataset.image_filenames):
-        want = naka_enhance(torch.from_numpy(read_rgb(path)))
+        low = torch.from_numpy(read_rgb(path))
+        want = capture_chroma(naka_enhance(low), low)  # the default colour: the capture's
         assert torch.allclose(data["image"], want, atol=2e-5)  # 16-bit cache quantisation
 
 
@@ -77,7 +79,9 @@ def test_cache_hit_on_second_run_and_miss_when_sigma_changes(toy_scene, monkeypa
 def test_scene_stats_cache_key_covers_all_views(toy_scene):
     dm = _dm(toy_scene, stats="scene", correction="none")
     images = [torch.from_numpy(read_rgb(p)) for p in dm.train_dataset.image_filenames]
-    want = naka_enhance(torch.stack(images), stats="scene")
+    want = torch.stack(
+        [capture_chroma(n, low) for n, low in zip(naka_enhance(torch.stack(images), stats="scene"), images)]
+    )
     got = torch.stack([d["image"] for d in dm.cached_train])
     assert torch.allclose(got, want, atol=2e-5)
     assert dm.enhancer.last_run["computed"] == 8

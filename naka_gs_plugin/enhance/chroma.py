@@ -39,7 +39,9 @@ def capture_chroma(
     if not blur > 0:
         raise ValueError(f"capture chroma blur must be > 0 pixels, got {blur!r}")
     kernel = max(3, int(3 * blur) | 1)  # odd, about +-1.5 sigma: the window the LOM measurements used
-    capture = kornia.filters.gaussian_blur2d(low.permute(2, 0, 1)[None], (kernel, kernel), (blur, blur))
+    capture = kornia.filters.gaussian_blur2d(
+        low.permute(2, 0, 1)[None], (kernel, kernel), (blur, blur), border_type="replicate"
+    )
     capture = kornia.color.rgb_to_linear_rgb(capture.clamp(0.0, 1.0))
     chromaticity = (capture + _EPS) / (capture.mean(dim=1, keepdim=True) + _EPS)
     linear = kornia.color.rgb_to_linear_rgb(enhanced.permute(2, 0, 1)[None].clamp(0.0, 1.0))
