@@ -23,6 +23,12 @@ fi
 stamp=.venv/.naka-gs-installed
 want=$(sha1sum pyproject.toml | cut -d' ' -f1)
 if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
+  # The install needs ~8.5 GB; pip's own out-of-space error comes late and buries the cause.
+  free_kb=$(df -Pk .venv | awk 'NR==2 {print $4}')
+  if [ "$free_kb" -lt 9000000 ]; then
+    echo "[setup] only $((free_kb / 1048576)) GB free on the disk of $(pwd)/.venv; the install needs ~9 GB: free some space and run again"
+    exit 1
+  fi
   echo "[setup] installing naka-gs and its dependencies into .venv (first time: ~2-3 min, ~8 GB)"
   start=$(date +%s)
   .venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip 2>&1 | grep -v "is ignored" || true
