@@ -38,7 +38,7 @@ from naka_gs_plugin.enhance.correction import (
     load_correction,
     resolve_mode,
 )
-from naka_gs_plugin.enhance.exposure import MIDDLE_GREY, apply_gamma, lift_gamma
+from naka_gs_plugin.enhance.exposure import METERED_TARGET, Metering, apply_gamma, lift_gamma
 from naka_gs_plugin.enhance.naka import linear_stretch, naka_rushton, stretch_stats
 from naka_gs_plugin.progress import StageProgress
 
@@ -76,18 +76,25 @@ class EnhanceConfig(InstantiateConfig):
     chroma_blur: float = DEFAULT_BLUR
     """Gaussian low-pass, in pixels, on the capture before its chromaticity is taken (``chroma capture``):
     a dark capture's colour is noise at the pixel scale."""
-    exposure: Union[float, Literal["none"]] = MIDDLE_GREY
+    exposure: Union[float, Literal["none"]] = METERED_TARGET
     """Scene exposure after the correction network (:mod:`naka_gs_plugin.enhance.exposure`): when the
-    enhanced views' mean is below this sRGB level, one curve ``x ** g`` shared by every view lifts it there
-    (default 0.4613, middle grey); ``none`` keeps the network's exposure. Applied after the cache."""
+    enhanced views meter below this sRGB level, one curve ``x ** g`` shared by every view lifts them there
+    (default 0.505, the metered level of normal-light photos); ``none`` keeps the network's exposure.
+    Applied after the cache."""
+    exposure_metering: Metering = "luminance"
+    """How ``exposure`` reads a scene's level: ``luminance``, the mean luminance in linear light, as a
+    camera meters (a dark-toned scene with bright areas is not lifted as if under-exposed), or ``mean``,
+    the mean sRGB value."""
     correction_mode: ModeName = DEFAULT_MODE
     """Correction inference mode (``naka_gs_plugin.enhance.correction.MODES``): ``auto`` picks the fastest
     one that keeps the quality bar on this CPU (``lean`` with native bfloat16, else ``lean-f32``);
     ``exact`` is the plain float32 full-resolution forward."""
 
     def __setstate__(self, state: dict) -> None:
-        """Runs saved before ``chroma`` existed trained on the network's colour: their ``config.yml`` keeps it."""
+        """Runs saved before ``chroma`` or ``exposure_metering`` existed trained on the network's colour and
+        on the mean sRGB metering: their ``config.yml`` keeps both."""
         state.setdefault("chroma", "network")
+        state.setdefault("exposure_metering", "mean")
         self.__dict__.update(state)
 
     def correction_path(self) -> Optional[Path]:
@@ -149,7 +156,12 @@ class Enhancer:
             )
         if config.exposure != "none" and not (isinstance(config.exposure, (int, float)) and 0 < config.exposure < 1):
             raise ValueError(
-                f"--pipeline.datamanager.enhance.exposure must be in (0, 1) or none, got {config.exposure!r} (default {MIDDLE_GREY})"
+                f"--pipeline.datamanager.enhance.exposure must be in (0, 1) or none, got {config.exposure!r} (default {METERED_TARGET})"
+            )
+        if config.exposure_metering not in ("luminance", "mean"):
+            raise ValueError(
+                "--pipeline.datamanager.enhance.exposure-metering must be luminance or mean, "
+                f"got {config.exposure_metering!r} (default luminance)"
             )
         if config.chroma not in ("capture", "network"):
             raise ValueError(
@@ -278,7 +290,9 @@ class Enhancer:
                     self._write(keys[i], out[i])
                     progress.advance(task)
         done = [o for o in out if o is not None]
-        gamma = 1.0 if self.config.exposure == "none" else lift_gamma(done, float(self.config.exposure))
+        gamma = 1.0
+        if self.config.exposure != "none":
+            gamma = lift_gamma(done, float(self.config.exposure), self.config.exposure_metering)
         if gamma != 1.0:
             done = [(im * 65535.0).round() / 65535.0 for im in apply_gamma(done, gamma)]
         seconds = time.perf_counter() - start
@@ -293,7 +307,11 @@ class Enhancer:
         CONSOLE.log(
             f"[naka-gs] {description}: {len(images)} images, {len(todo)} computed, "
             f"{len(images) - len(todo)} from cache ({self.cache_dir or 'cache off'}) in {seconds:.2f} s"
-            + (f", exposure lifted to {self.config.exposure} (gamma {gamma:.3f})" if gamma != 1.0 else ""),
+            + (
+                f", exposure lifted to {self.config.exposure} ({self.config.exposure_metering} metering, gamma {gamma:.3f})"
+                if gamma != 1.0
+                else ""
+            ),
             markup=False,
         )
         return done
