@@ -1,9 +1,9 @@
 """2D record for the LOM protocol (docs/real-scenes.md, "2D ... + exposure"): a scene's hold-out weights on
 its test views, low -> Naka -> network -> capture chroma (the default enhancement), with and without the
 scene's exposure curve ``x ** g``, and the network's own colour for comparison. ``g`` is the exponent the
-scene's 3D run logged ("exposure lifted to 0.4613 (gamma G)" in its log.txt), so the second
+scene's 3D run logged ("exposure lifted to 0.505 (luminance metering, gamma G)" in its log.txt), so the second
 row scores exactly the images the 3D model trains towards. Images sRGB in [0, 1]. From the repository root:
-    .venv/bin/python docs/experiments/holdout_2d_exposure.py shrub 0.751
+    .venv/bin/python docs/experiments/holdout_2d_exposure.py shrub 0.925
 """
 
 import json
