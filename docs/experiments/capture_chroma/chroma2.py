@@ -1,6 +1,6 @@
 import torch, kornia
 from naka_gs_plugin.enhance.exposure import lift_gamma, apply_gamma
-exec(open('/tmp/exp/chroma.py').read().split('tot={}')[0])
+exec(open(__file__.rsplit('/', 1)[0] + '/chroma.py').read().split('tot={}')[0])
 def cfl(net, low, k=9, q=None, scene_black=None):
     L=lin(kornia.filters.gaussian_blur2d(low.permute(2,0,1)[None],(k,k),(k/3,k/3)))
     if scene_black is not None: L=(L-scene_black.view(1,3,1,1)).clamp(min=0)

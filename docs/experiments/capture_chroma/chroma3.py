@@ -1,6 +1,6 @@
 import torch, kornia
 from naka_gs_plugin.enhance.exposure import lift_gamma, apply_gamma
-exec(open('/tmp/exp/chroma.py').read().split('tot={}')[0])
+exec(open(__file__.rsplit('/', 1)[0] + '/chroma.py').read().split('tot={}')[0])
 def cfl(net, low, k=9, conf=None, jb=None, Yw=False):
     lowc=low.permute(2,0,1)[None]; E=lin(net.permute(2,0,1)[None])
     if jb: L=lin(kornia.filters.joint_bilateral_blur(lowc, net.permute(2,0,1)[None], (k,k), jb, (k/3,k/3)))

@@ -1,5 +1,5 @@
 import torch, kornia
-exec(open('/tmp/exp/chroma.py').read().split('tot={}')[0])
+exec(open(__file__.rsplit('/', 1)[0] + '/chroma.py').read().split('tot={}')[0])
 def cfl(net, low, num, den):
     L=lin(kornia.filters.gaussian_blur2d(low.permute(2,0,1)[None],(9,9),(3,3)).clamp(0,1))
     c=(L+num)/(L.mean(1,keepdim=True)+den)
