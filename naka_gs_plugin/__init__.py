@@ -25,4 +25,12 @@ try:  # numpy >= 1.26; ``numpy.core`` is a deprecated alias from numpy 2 on
 except ImportError:
     from numpy.core.multiarray import scalar as _scalar
 
-_torch.serialization.add_safe_globals([_scalar, _np.dtype, type(_np.dtype(_np.float64))])
+# Both names: a checkpoint written under numpy 1 says ``numpy.core...``, under numpy 2 ``numpy._core...``.
+_torch.serialization.add_safe_globals(
+    [
+        (_scalar, "numpy.core.multiarray.scalar"),
+        (_scalar, "numpy._core.multiarray.scalar"),
+        _np.dtype,
+        type(_np.dtype(_np.float64)),
+    ]
+)

@@ -1,11 +1,12 @@
 """The accuracy-vs-time grid: a tiny smoke grid runs, records failures, resumes and reproduces."""
 
+import copy
 import json
 from pathlib import Path
 
 import pytest
 
-from naka_gs_plugin.bench.grid import BenchSpecError, load_grid, pareto
+from naka_gs_plugin.bench.grid import BenchSpecError, load_grid, pareto, set_setting
 from naka_gs_plugin.scripts.bench import Bench
 from naka_gs_plugin.shipped import CONFIGS
 
@@ -72,6 +73,18 @@ def test_unknown_setting_is_rejected_naming_the_file(tmp_path, toy_scene):
     grid = _grid(tmp_path, toy_scene, "  typo: {pipeline.model.sh_degre: 1}\n")
     with pytest.raises(BenchSpecError, match=r"grid\.yaml: setting 'pipeline\.model\.sh_degre'.*no field 'sh_degre'"):
         load_grid(grid)
+
+
+def test_settings_reach_into_the_optimizer_dict():
+    """``optimizers.<group>.scheduler.max_steps`` sets that group's schedule; an unknown group is an error."""
+    from naka_gs_plugin.config import naka_gs_method
+
+    config = copy.deepcopy(naka_gs_method.config)
+    set_setting(config, "optimizers.means.scheduler.max_steps", 1234)
+    assert config.optimizers["means"]["scheduler"].max_steps == 1234
+    assert naka_gs_method.config.optimizers["means"]["scheduler"].max_steps != 1234
+    with pytest.raises(AttributeError, match=r"no key 'meens' in \[.*'means'"):
+        set_setting(config, "optimizers.meens.scheduler.max_steps", 1)
 
 
 def test_missing_grid_file_names_the_shipped_grids(tmp_path):

@@ -331,6 +331,8 @@ class ParityConfig:
     """timing: image sizes (the CPU benchmark's)."""
     timing_methods: Tuple[str, ...] = ("gsplat", "torch-cuda")
     """timing: any of gsplat, torch-cuda (our torch path on the GPU), torch, cpu-fast (this machine's CPU)."""
+    timing_correction: Tuple[str, ...] = ("882x586", "1764x1172")
+    """timing: image sizes of the correction network's per-image timing (``exact`` on CUDA); () skips it."""
     timing_repeats: int = 5
     """timing: timed repetitions after one warm-up; the median is reported."""
     cpu_baseline: Path = REPO / "scripts" / "gpu" / "cpu_baseline.json"
@@ -536,7 +538,42 @@ def run_timing(cfg: ParityConfig) -> Dict:
             if cpu is not None:
                 row["cpu"] = {m: cpu[m] for m in ("cpu-fast", "torch") if cpu.get(m)}
             rows.append(row)
-    return {"versions": versions(), "cpu_baseline": baseline.get("source", str(cfg.cpu_baseline)), "rows": rows}
+    correction = [time_correction(res, cfg.timing_repeats) for res in cfg.timing_correction]
+    cpu_correction = {r["resolution"]: r for r in baseline.get("correction", {}).get("rows", [])}
+    for row in correction:
+        if row["resolution"] in cpu_correction:
+            row["cpu"] = {k: v for k, v in cpu_correction[row["resolution"]].items() if k != "resolution"}
+    return {
+        "versions": versions(),
+        "cpu_baseline": baseline.get("source", str(cfg.cpu_baseline)),
+        "rows": rows,
+        "correction_cpu_baseline": baseline.get("correction", {}).get("source"),
+        "correction": correction,
+    }
+
+
+def time_correction(resolution: str, repeats: int) -> Dict:
+    """Median seconds of the shipped correction network (``exact``: the plain float32 forward, the only
+    mode that runs on CUDA; the lean modes are CPU kernels) per image on CUDA, after one warm-up."""
+    from naka_gs_plugin.enhance.checkpoint import DEFAULT_WEIGHTS, load_correction
+    from naka_gs_plugin.enhance.correction import CorrectionRunner
+    from naka_gs_plugin.enhance.naka import naka_enhance
+
+    width, height = parse_size(resolution)
+    gen = torch.Generator().manual_seed(0)
+    low = torch.rand(height, width, 3, generator=gen) * 0.2  # a dark sRGB capture in [0, 0.2]
+    pair = [t.permute(2, 0, 1)[None].contiguous().cuda() for t in (low, naka_enhance(low))]
+    runner = CorrectionRunner(load_correction(DEFAULT_WEIGHTS).cuda(), "exact")
+    seconds = []
+    with torch.no_grad():
+        for _ in range(repeats + 1):
+            _sync("cuda")
+            t0 = time.perf_counter()
+            runner(*pair)
+            _sync("cuda")
+            seconds.append(time.perf_counter() - t0)
+    torch.cuda.empty_cache()
+    return {"resolution": resolution, "exact_cuda_s": statistics.median(seconds[1:])}
 
 
 def timing_table(result: Dict) -> str:
@@ -559,6 +596,19 @@ def timing_table(result: Dict) -> str:
                 cpu = r.get("cpu", {}).get(c)
                 cells.append(f"{cpu['fwd_bwd_s'] / r[g]['fwd_bwd_s']:.1f}x" if cpu and g in r else "-")
         lines.append("| " + " | ".join(cells) + " |")
+    if result.get("correction"):
+        lines += [
+            "",
+            f"Correction network per image; CPU baseline: {result.get('correction_cpu_baseline')}",
+            "",
+            "| image | exact on CUDA s | 2-core exact s (/ CUDA) | 2-core auto s (/ CUDA) |",
+            "|---|---:|---:|---:|",
+        ]
+        for r in result["correction"]:
+            gpu, cpu = r["exact_cuda_s"], r.get("cpu", {})
+            cells = [r["resolution"], f"{gpu:.4f}"]
+            cells += [f"{cpu[k]:.2f} ({cpu[k] / gpu:.0f}x)" if k in cpu else "-" for k in ("exact_s", "auto_s")]
+            lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 

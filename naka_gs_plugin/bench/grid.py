@@ -139,11 +139,18 @@ def _resolve(path: str, relative_to: Path) -> Path:
 
 
 def set_setting(config: Any, key: str, value: Any) -> None:
-    """Set a dotted path (or alias) on a nested dataclass config; unknown paths raise AttributeError."""
+    """Set a dotted path (or alias) on a nested dataclass config; unknown paths raise AttributeError.
+
+    A dict on the way is entered by key, as ``optimizers.means.scheduler.max_steps``."""
     dotted = ALIASES.get(key, key)
     *parents, leaf = dotted.split(".")
     target = config
     for part in parents:
+        if isinstance(target, dict):
+            if part not in target:
+                raise AttributeError(f"'{dotted}' does not exist (no key '{part}' in {sorted(target)})")
+            target = target[part]
+            continue
         if not hasattr(target, part):
             raise AttributeError(f"'{dotted}' does not exist ({type(target).__name__} has no '{part}')")
         target = getattr(target, part)

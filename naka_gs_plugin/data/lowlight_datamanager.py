@@ -128,7 +128,11 @@ class LowLightDatamanager(FullImageDatamanager[LowLightDataset]):
             raise MissingGroundTruthError(self._no_gt_message())
         cached = super()._load_images(split, cache_images_device)
         if split == "train":
-            enhanced = self.enhancer.enhance_images([d["image"] for d in cached], description="Enhancing train images")
+            # The enhancer runs on the CPU (its lean correction modes are numba kernels), also where
+            # nerfstudio caches the images on the GPU; each result goes back to its image's device.
+            enhanced = self.enhancer.enhance_images(
+                [d["image"].cpu() for d in cached], description="Enhancing train images"
+            )
             for data, image in zip(cached, enhanced):
                 image = image.to(data["image"].device)
                 data["image"] = (image * 255.0).round().to(torch.uint8) if data["image"].dtype == torch.uint8 else image

@@ -36,10 +36,26 @@ step_install() {
   # --no-deps: the list is complete (torch and numpy are already there; a resolver would want them).
   "$PY" -m pip install --quiet --no-index --no-deps --upgrade --target "$SITE" .gpu-wheels/*.whl
   "$PY" -c "import gsplat, jaxtyping, tyro, rich, pytest; print('gsplat', gsplat.__version__)"
+  if ls .gpu-wheels/train/*.whl >/dev/null 2>&1; then
+    "$PY" -m pip install --quiet --no-index --no-deps --upgrade --target "$SITE" .gpu-wheels/train/*.whl
+    "$PY" -c "import nerfstudio.engine.trainer, naka_gs_plugin.config; print('nerfstudio imports')"
+  fi
   command -v ninja
 }
 
 step_build() {
+  # A build made by an earlier call (carried as .gpu-build/prebuilt/gsplat_cuda.so.gz, see below)
+  # is installed as gsplat's precompiled module, which gsplat imports before trying to build.
+  if [ -f .gpu-build/prebuilt/gsplat_cuda.so.gz ]; then
+    gunzip -c .gpu-build/prebuilt/gsplat_cuda.so.gz >"$SITE/gsplat/gsplat_cuda.so"
+    # gsplat imports `gsplat.csrc`; the built module's init symbol is named gsplat_cuda.
+    printf '%s\n' "import importlib.util, os, sys" \
+      "_spec = importlib.util.spec_from_file_location('gsplat_cuda', os.path.join(os.path.dirname(__file__), 'gsplat_cuda.so'))" \
+      "_mod = importlib.util.module_from_spec(_spec)" "_spec.loader.exec_module(_mod)" "sys.modules[__name__] = _mod" \
+      >"$SITE/gsplat/csrc.py"
+    "$PY" -c "from gsplat.cuda._backend import _C; assert _C is not None; print('gsplat: carried build loaded')"
+    return
+  fi
   # The same torch.utils.cpp_extension.load call as gsplat 1.4.0's cuda/_backend.py (name, sources,
   # flags, build dir), made here because ninja resumes it if a call times out, whereas gsplat's own
   # first import deletes a build directory that has no .so yet. Afterwards gsplat just loads it.
@@ -68,6 +84,10 @@ from gsplat.cuda._backend import _C
 assert _C is not None, "gsplat's CUDA extension did not load"
 print(f"gsplat CUDA extension ready in {time.time() - started:.0f} s")
 PYEOF
+  # Sent back so that later calls (a fresh machine each) can carry it instead of building again.
+  local so
+  so=$("$PY" -c "from torch.utils.cpp_extension import _get_build_directory as d; print(d('gsplat_cuda', False))")/gsplat_cuda.so
+  gzip -c "$so" >"$OUT/gsplat_cuda.so.gz" && ls -l "$so" "$OUT/gsplat_cuda.so.gz"
 }
 
 step_parity() {
@@ -88,11 +108,27 @@ step_timing() {
   "$PY" -m naka_gs_plugin.scripts.cuda_parity --mode timing --out-dir "$OUT/timing"
 }
 
+step_train() {
+  # nerfstudio's trainer with NakaGSModel on gsplat: the grid $GRID (default scripts/gpu/cuda-vs-cpu.yaml,
+  # whose CPU side is the same command here). Needs .gpu-data/ (scripts/gpu/prepare_train.sh) and the
+  # train wheels. $TRAIN_LIMIT_S (default 480) stops the grid in time for its results to come back.
+  [ -d .gpu-data ] || { echo "no .gpu-data/: run scripts/gpu/prepare_train.sh here and carry .gpu-data"; return 1; }
+  local grid=${GRID:-scripts/gpu/cuda-vs-cpu.yaml} rc=0
+  local name
+  name=$(basename "$grid" .yaml)
+  MPLBACKEND=Agg timeout "${TRAIN_LIMIT_S:-480}" "$PY" -m naka_gs_plugin.scripts.bench "$grid" --out "$OUT/$name" || rc=$?
+  # The grid records a failed run and carries on; here a failed run fails the step.
+  "$PY" -c "import json, sys; r = json.load(open(sys.argv[1]))['runs']; bad = [k for k, v in r.items() if v['status'] != 'ok']; print('failed runs:', bad) if bad else None; sys.exit(bool(bad))" "$OUT/$name/results.json" || rc=1
+  # $OUT returns at most 8 files, 2 folders down: the run folder travels as one archive (no checkpoint).
+  tar czf "$OUT/$name.tgz" --exclude '*.ckpt' --exclude cache -C "$OUT" "$name" && rm -rf "${OUT:?}/$name"
+  return $rc
+}
+
 steps=("$@")
 [ ${#steps[@]} -eq 0 ] && steps=(env install build parity tests timing)
 failed=()
 for step in "${steps[@]}"; do
-  if ! declare -F "step_$step" >/dev/null; then echo "unknown step $step (env install build parity tests timing)"; exit 2; fi
+  if ! declare -F "step_$step" >/dev/null; then echo "unknown step $step (env install build parity tests timing train)"; exit 2; fi
   echo "=== $step"
   started=$SECONDS
   "step_$step" 2>&1 | tee "$OUT/$step.log"
