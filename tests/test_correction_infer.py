@@ -15,6 +15,7 @@ from naka_gs_plugin.enhance.correction import (
     ModeName,
     correct_image,
     receptive_radius,
+    resolve_mode,
 )
 from naka_gs_plugin.enhance.correction_net import ChromaGuided, ChromaGuidedConfig
 from naka_gs_plugin.enhance.correction_train import half_resolution_maps
@@ -308,3 +309,27 @@ def test_bench_times_modes_in_fresh_processes_and_writes_the_sheet(toy_scene, tm
     assert all(r["threads"] == 1 for r in results)
     assert all(r["seconds"] > 0 and r["peak_gb"] > 0.1 for r in results)
     assert Image.open(tmp_path / "sheet.png").size == (2 * 32, 3 * 24)  # 2 views x (low, Naka, corrected)
+
+
+def test_training_on_cuda_runs_the_correction_there_in_exact_mode(tmp_path):
+    """``auto`` with a CUDA training device means ``exact`` on that GPU (the lean modes are CPU kernels);
+    an explicit CPU mode stays on the CPU, and a CPU device resolves ``auto`` for this CPU as before."""
+    ckpt = save_correction(_net(SMALL), tmp_path / "net.pt")
+    on_gpu = Enhancer(EnhanceConfig(correction=str(ckpt)), device="cuda:0")
+    assert (on_gpu.correction_mode, on_gpu.correction_device) == ("exact", torch.device("cuda:0"))
+    assert on_gpu.correction_key["mode"] == "exact"
+    lean = Enhancer(EnhanceConfig(correction=str(ckpt), correction_mode="lean-f32"), device="cuda:0")
+    assert (lean.correction_mode, lean.correction_device) == ("lean-f32", torch.device("cpu"))
+    on_cpu = Enhancer(EnhanceConfig(correction=str(ckpt)))
+    assert (on_cpu.correction_mode, on_cpu.correction_device) == (resolve_mode("auto"), torch.device("cpu"))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA: the correction network on the GPU")
+def test_correction_on_cuda_matches_the_cpu(tmp_path):
+    ckpt = save_correction(_net(SMALL), tmp_path / "net.pt")
+    images = _images()
+    gpu = Enhancer(EnhanceConfig(correction=str(ckpt), use_cache=False), device="cuda").enhance_images(images)
+    cpu = Enhancer(EnhanceConfig(correction=str(ckpt), correction_mode="exact", use_cache=False)).enhance_images(images)
+    for a, b in zip(gpu, cpu):
+        assert a.device.type == "cpu"
+        torch.testing.assert_close(a, b, atol=2e-4, rtol=0)  # float32 GPU vs CPU, then 16-bit rounding

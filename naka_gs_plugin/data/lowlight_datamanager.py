@@ -110,7 +110,7 @@ class LowLightDatamanager(FullImageDatamanager[LowLightDataset]):
         if torch.device(device).type != "cuda" and self.config.cache_images == "cpu":
             # "cpu" pins memory, which needs an NVIDIA driver; "gpu" means "this datamanager's device".
             self.config.cache_images = "gpu"
-        self.enhancer = Enhancer(self.config.enhance)
+        self.enhancer = Enhancer(self.config.enhance, device=device)
         self.has_ground_truth = bool(self.eval_dataset)
         if not self.has_ground_truth:
             self.eval_unseen_cameras = []
@@ -128,7 +128,7 @@ class LowLightDatamanager(FullImageDatamanager[LowLightDataset]):
             raise MissingGroundTruthError(self._no_gt_message())
         cached = super()._load_images(split, cache_images_device)
         if split == "train":
-            # The enhancer runs on the CPU (its lean correction modes are numba kernels), also where
+            # The enhancer takes CPU images (only its correction network may run on the GPU), also where
             # nerfstudio caches the images on the GPU; each result goes back to its image's device.
             enhanced = self.enhancer.enhance_images(
                 [d["image"].cpu() for d in cached], description="Enhancing train images"
