@@ -34,6 +34,7 @@ from naka_gs_plugin.enhance.correction_train import (
     lom_pairs,
     sim_pairs,
     train,
+    training_device,
     validate,
 )
 from naka_gs_plugin.enhance.naka import naka_enhance
@@ -379,3 +380,33 @@ def test_neutral_init_starts_from_the_naka_image(tmp_path):
         ]
     )
     assert history["val"][0]["psnr"] == pytest.approx(naka_psnr, abs=1e-3)
+
+
+def test_training_device_choice_and_bad_names():
+    """``--device auto`` is CUDA where there is one, else the CPU; unusable names fail naming the option."""
+    assert training_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
+    assert training_device("cpu") == torch.device("cpu")
+    for bad, why in (("gpu", "not a device"), ("meta", "runs on cpu or cuda")):
+        with pytest.raises(ValueError, match=rf"--device '{bad}'.*{why}"):
+            training_device(bad)
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match=r"--device cuda: CUDA is not available.*--device cpu"):
+            training_device("cuda")
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA: training the correction network on the GPU")
+def test_training_on_cuda_improves_psnr_and_saves_cpu_weights(tmp_path):
+    rng = np.random.default_rng(0)
+    data = tmp_path / "pairs"
+    _write_pairs(data, "train", 6, rng)
+    _write_pairs(data, "eval", 2, rng)
+    cfg = TrainConfig(
+        output_dir=tmp_path / "run", model=TINY, lol=(data,), epochs=2, batch_size=4, crop=32,
+        images_per_epoch=16, lr=3e-3, log_every=0, device="cuda",
+    )  # fmt: skip
+    with pytest.warns(UserWarning, match="VGG"):
+        history = train(cfg)
+    psnrs = [v["psnr"] for v in history["val"]]
+    assert psnrs[2] > psnrs[0] + 1.0
+    net = load_correction(tmp_path / "run" / "latest.pt")  # saved on the CPU, validated there the same
+    assert validate(net, PairSet(lol_pairs(data, "eval"), "v"))["psnr"] == pytest.approx(psnrs[2], abs=1e-3)

@@ -102,6 +102,9 @@ class TrainConfig:
     """torchvision VGG19 ImageNet state dict (vgg19-dcbb9e9d.pth) for the perceptual term; none: term off."""
     bf16: bool = False
     """bfloat16 autocast of the network's forward pass (loss in float32)."""
+    device: str = "auto"
+    """Where the network trains and validates: ``auto`` (CUDA when available, else the CPU), ``cpu``,
+    ``cuda`` or ``cuda:N``. Data loading and augmentation stay on the CPU."""
     threads: Optional[int] = None
     """torch CPU threads (default: torch's choice)."""
     seed: int = 42
@@ -276,14 +279,15 @@ def half_resolution_maps(
 
 @torch.no_grad()
 def validate(net: ChromaGuided, val: PairSet, mode: str = "exact") -> Dict[str, float]:
-    """Full-resolution PSNR per image (network run in ``mode``, one of :data:`VAL_MODES`), averaged
-    overall and per source."""
+    """Full-resolution PSNR per image (network run in ``mode``, one of :data:`VAL_MODES`, on the
+    network's device), averaged overall and per source."""
     runner = CorrectionRunner(net, "exact" if mode == "half" else mode)
+    device = next(net.parameters()).device
     scores: Dict[str, List[float]] = {}
     for pair, lo, hi in zip(val.pairs, val.low, val.high):
         low = torch.from_numpy(as_float(lo))[None]
-        gt = torch.from_numpy(as_float(hi)).permute(2, 0, 1)[None]
-        low, naka = low.permute(0, 3, 1, 2).contiguous(), with_naka(low)
+        gt = torch.from_numpy(as_float(hi)).permute(2, 0, 1)[None].to(device)
+        low, naka = low.permute(0, 3, 1, 2).contiguous().to(device), with_naka(low).to(device)
         out = half_resolution_maps(runner, low, naka) if mode == "half" else runner(low, naka)["enhanced"]
         scores.setdefault(pair.source, []).append(psnr(out, gt, eps=1e-8))
     result = {f"psnr_{k}": float(np.mean(v)) for k, v in scores.items()}
@@ -376,10 +380,28 @@ def load_sources(config: TrainConfig) -> Tuple[PairSet, PairSet, List[Tuple[str,
     return train_set, PairSet(val, "Reading validation pairs"), dropped
 
 
+def training_device(name: str) -> torch.device:
+    """``--device``: ``auto`` -> CUDA when available, else the CPU; an unusable name -> one-line error."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise ValueError(f"--device {name!r} is not a device: use auto, cpu, cuda or cuda:N") from None
+    if device.type not in ("cpu", "cuda"):
+        raise ValueError(f"--device {name!r}: the correction trainer runs on cpu or cuda (or auto)")
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"--device {name}: CUDA is not available on this machine: use --device cpu (or auto)")
+    return device
+
+
 def train(config: TrainConfig) -> Dict[str, list]:
     """Run the training; returns the history (per epoch: train loss terms, validation PSNR, seconds)."""
     if config.val_mode not in VAL_MODES:
         raise ValueError(f"unknown --val-mode {config.val_mode!r}; choose one of {VAL_MODES}")
+    device = training_device(config.device)
+    if device.type == "cuda" and config.val_mode not in ("exact", "half"):
+        raise ValueError(f"--val-mode {config.val_mode} runs on the CPU only; on CUDA use exact or half")
     if config.threads:
         torch.set_num_threads(config.threads)
     fit_threads()
@@ -389,7 +411,7 @@ def train(config: TrainConfig) -> Dict[str, list]:
     train_set, val_set, dropped = load_sources(config)
     counts = {s: sum(p.source == s for p in train_set.pairs) for s in ("lol", "lom", "sim")}
     _log(
-        f"correction training: {len(train_set)} pairs {counts}, {len(val_set)} validation pairs; "
+        f"correction training on {device}: {len(train_set)} pairs {counts}, {len(val_set)} validation pairs; "
         f"dropped {len(dropped)} misaligned (edge correlation < {config.min_edge_correlation}): "
         + (", ".join(f"{n} ({s:.2f})" for n, s in dropped) or "none")
     )
@@ -412,7 +434,8 @@ def train(config: TrainConfig) -> Dict[str, list]:
         for head in (net.mul_head, net.add_head):
             torch.nn.init.zeros_(head.weight)
             torch.nn.init.zeros_(head.bias)
-    loss_fn = CorrectionLoss(vgg_weights=config.vgg_weights)
+    net.to(device)
+    loss_fn = CorrectionLoss(vgg_weights=config.vgg_weights).to(device)
     opt = torch.optim.AdamW(net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=config.epochs)
     history: Dict[str, list] = {"epoch": [], "val": [], "train": [], "seconds": [], "lr": []}
@@ -458,10 +481,10 @@ def train(config: TrainConfig) -> Dict[str, list]:
                     augment(train_set.low[i], train_set.high[i], config.crop, rng, config.scale_range) for i in idx
                 ]
                 low = torch.from_numpy(np.stack([c[0] for c in crops]))
-                gt = torch.from_numpy(np.stack([c[1] for c in crops])).permute(0, 3, 1, 2).contiguous()
-                naka = with_naka(low)
-                low = low.permute(0, 3, 1, 2).contiguous()
-                with torch.autocast("cpu", dtype=torch.bfloat16, enabled=config.bf16):
+                gt = torch.from_numpy(np.stack([c[1] for c in crops])).permute(0, 3, 1, 2).contiguous().to(device)
+                naka = with_naka(low).to(device)
+                low = low.permute(0, 3, 1, 2).contiguous().to(device)
+                with torch.autocast(device.type, dtype=torch.bfloat16, enabled=config.bf16):
                     o = net(low, naka)
                 terms = loss_fn(o["enhanced"].float(), gt, naka, o["mul_map"].float(), o["add_map"].float())
                 if not optimizer_step(net, opt, terms["total"], config.grad_clip):
