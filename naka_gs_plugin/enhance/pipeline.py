@@ -177,17 +177,11 @@ class Enhancer:
             raise ValueError(f"--pipeline.datamanager.enhance.n must be > 0, got {config.n!r} (default 1.0)")
         fit_threads()  # the heavy stages (correction network, cpu-fast rasterizer) follow this count
         self.correction_path = config.correction_path() if config.method == "naka" else None
-        on_cuda = torch.device(device).type == "cuda"
-        # The lean modes are CPU kernels; on a GPU the plain forward is the fast one (0.05 s per 882x586
-        # image on an H100, 30x less than lean on 2 CPU cores: docs/cuda.md).
-        self.correction_mode = (
-            "exact" if on_cuda and config.correction_mode == "auto" else resolve_mode(config.correction_mode)
-        )
+        self.correction_mode = resolve_mode(config.correction_mode, device)
         """The concrete inference mode (``auto`` resolved for this machine): part of the cache key."""
-        self.correction_device = (
-            torch.device(device) if on_cuda and self.correction_mode == "exact" else torch.device("cpu")
-        )
-        """Where the correction network runs; images are enhanced on the CPU otherwise."""
+        on_cuda = torch.device(device).type == "cuda"
+        self.correction_device = torch.device(device if on_cuda and self.correction_mode == "exact" else "cpu")
+        """Where the correction network runs (only ``exact`` runs on a GPU); images are enhanced on the CPU."""
         self.correction_key: Optional[dict] = None
         """The correction's part of the cache key: weights file hash and inference mode."""
         if self.correction_path is not None:
@@ -207,12 +201,6 @@ class Enhancer:
     def runner(self) -> Optional[CorrectionRunner]:
         """The correction network (loaded on first use), or ``None`` without correction."""
         if self._runner is None and self.correction_path is not None:
-            if self.correction_device.type == "cuda":
-                print(
-                    f"[naka-gs] correction network on {self.correction_device} ({self.correction_mode}): "
-                    "training runs on CUDA, and the lean modes are CPU kernels",
-                    flush=True,
-                )
             net = load_correction(self.correction_path).to(self.correction_device)
             self._runner = CorrectionRunner(net, self.correction_mode)
         return self._runner
@@ -298,7 +286,7 @@ class Enhancer:
                     naka_s += time.perf_counter() - t
                     if runner is not None:
                         t = time.perf_counter()
-                        pair = [t.permute(2, 0, 1)[None].to(self.correction_device) for t in (low, enhanced)]
+                        pair = [x.permute(2, 0, 1)[None].to(self.correction_device) for x in (low, enhanced)]
                         enhanced = runner(*pair)["enhanced"][0].permute(1, 2, 0).cpu()
                         correction_s += time.perf_counter() - t
                     if self.config.chroma == "capture":
