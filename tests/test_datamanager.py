@@ -64,7 +64,8 @@ def test_cache_hit_on_second_run_and_miss_when_sigma_changes(toy_scene, monkeypa
         "seconds": pytest.approx(second.enhancer.last_run["seconds"]),
         "naka_seconds": 0.0,
         "correction_seconds": 0.0,
-        "exposure_gamma": 1.0,
+        "exposure_curve": "gain",
+        "exposure_value": 1.0,
     }
     assert calls == [], "a cache hit must not recompute the response"
     for a, b in zip(first.cached_train, second.cached_train):

@@ -4,10 +4,15 @@ The correction network leaves the exposure about where the Naka stretch puts it,
 its maximum from the brightest pixels: in captures with lamps or highlights (RealX3D) the enhanced views
 are far darker than normal-light photos. Like a camera's average metering, the scene's *metered level*,
 the mean luminance in linear light (sRGB-encoded to compare with pixel values), is brought to that of
-normal-light photos by one power curve ``y = x ** g`` with ``g <= 1`` shared by every view: it keeps black
-at 0, white at 1, the order of values and the cross-view consistency (a per-view curve would give each
-view its own appearance). Scenes already at or above the target are left alone: a bright night scene is
-not darkened.
+normal-light photos by one curve shared by every view (a per-view curve would give each view its own
+appearance). Scenes already at or above the target are left alone: a bright night scene is not darkened.
+Two curves (:data:`Curve`), both keeping black at 0 and the order of values:
+
+- ``gain``: what a longer exposure does, every linear value times one factor ``k >= 1``, with a soft
+  shoulder above :data:`KNEE` so highlights roll off to white instead of clipping. Contrast and the
+  blacks stay where the capture has them.
+- ``power``: ``y = x ** g`` with ``g <= 1`` on the sRGB values; it lifts shadows far more than mid-tones,
+  so the lifted views are flatter than a real exposure (blacks lifted towards grey).
 
 Metering in linear light is what tells a dark-toned scene from an under-exposed one: a few bright areas
 (sky through foliage) carry a large share of the light, so a scene of dark leaves under a bright sky
@@ -35,6 +40,17 @@ metering option existed)."""
 
 MIN_GAMMA = 0.2
 """Strongest lift allowed: a nearly black scene (noise only) is not stretched into a grey wash."""
+
+MAX_GAIN = 16.0
+"""Strongest ``gain`` allowed (4 stops), for the same reason as :data:`MIN_GAMMA`."""
+
+KNEE = 0.8
+"""Linear level above which ``gain`` compresses instead of clipping: ``knee + (1 - knee) (1 - exp(-(u -
+knee) / (1 - knee)))`` for ``u = k x > knee``, continuous with slope 1 at the knee and approaching 1 (a
+film-like shoulder); 0.8 linear is 0.91 in sRGB, so mid-tones are a pure gain."""
+
+Curve = Literal["gain", "power"]
+"""The exposure curve: ``gain`` (linear-light gain with a shoulder) or ``power`` (``x ** g`` on sRGB)."""
 
 Metering = Literal["luminance", "mean"]
 """``luminance``: sRGB encoding of the mean Rec. 709 luminance in linear light (a camera's average
@@ -78,6 +94,42 @@ def metered_level(images: Sequence[Float[Tensor, "H W 3"]], metering: Metering =
     return _encode(_luminance(torch.cat([im.reshape(-1, 3) for im in images]).double().clamp(0.0, 1.0)))
 
 
+def _sample(images: Sequence[Float[Tensor, "H W 3"]], stride: int) -> Float[Tensor, "N 3"]:
+    """Every ``stride``-th pixel of every view, float64 in [0, 1]."""
+    return torch.cat([im.reshape(-1, 3)[::stride] for im in images]).double().clamp(0.0, 1.0)
+
+
+def _goal(target: float, metering: Metering) -> float:
+    """``target`` in the units :func:`_level` compares: linear luminance, or the sRGB mean."""
+    if not 0.0 < target < 1.0:
+        raise ValueError(f"exposure target must be in (0, 1), got {target!r}")
+    if metering == "luminance":
+        return float(_linear(torch.full((1, 3), target))[0, 0])
+    if metering == "mean":
+        return target
+    raise ValueError(f"exposure metering must be luminance or mean, got {metering!r}")
+
+
+def _level(srgb: Float[Tensor, "N 3"], metering: Metering) -> float:
+    """The level of sRGB pixels in :func:`_goal`'s units (no sRGB encode per bisection step)."""
+    return _luminance(srgb) if metering == "luminance" else float(srgb.mean())
+
+
+def _bisect(level, weakest: float, strongest: float, goal: float) -> float:
+    """The curve parameter between ``weakest`` and ``strongest`` (either order) at which ``level``, monotone
+    from its value at ``weakest`` up to its value at ``strongest``, reaches ``goal``; ``strongest`` when even
+    that stays below."""
+    if level(strongest) <= goal:
+        return strongest
+    for _ in range(40):
+        mid = 0.5 * (weakest + strongest)
+        if level(mid) < goal:
+            weakest = mid
+        else:
+            strongest = mid
+    return 0.5 * (weakest + strongest)
+
+
 def lift_gamma(
     images: Sequence[Float[Tensor, "H W 3"]],
     target: float = METERED_TARGET,
@@ -85,31 +137,69 @@ def lift_gamma(
     stride: int = 7,
 ) -> float:
     """The exponent ``g`` in ``[MIN_GAMMA, 1]`` for which ``images ** g`` meter at ``target`` (1 when the
-    scene already meters at least ``target``). Bisection on a strided sample of the pixels: the level of
-    ``x ** g`` falls monotonically as ``g`` grows."""
-    if not 0.0 < target < 1.0:
-        raise ValueError(f"exposure target must be in (0, 1), got {target!r}")
-    if metering == "mean":
-        sample = torch.cat([im.reshape(-1)[::stride] for im in images]).double().clamp(0.0, 1.0)
-        level, goal = (lambda g: float(sample.pow(g).mean())), target
-    elif metering == "luminance":
-        sample = torch.cat([im.reshape(-1, 3)[::stride] for im in images]).double().clamp(0.0, 1.0)
-        # Compared in linear light: one decode of the target instead of an encode per step.
-        level, goal = (lambda g: _luminance(sample.pow(g))), float(_linear(torch.full((1, 3), target))[0, 0])
-    else:
-        raise ValueError(f"exposure metering must be luminance or mean, got {metering!r}")
-    if sample.numel() == 0 or level(1.0) >= goal:
+    scene already meters at least ``target``). Bisection on a strided sample of the pixels."""
+    goal = _goal(target, metering)
+    sample = _sample(images, stride)
+    if sample.numel() == 0 or _level(sample, metering) >= goal:
         return 1.0
-    lo, hi = MIN_GAMMA, 1.0
-    if level(lo) <= goal:
-        return lo
-    for _ in range(40):
-        mid = 0.5 * (lo + hi)
-        if level(mid) > goal:
-            lo = mid
-        else:
-            hi = mid
-    return 0.5 * (lo + hi)
+    return _bisect(lambda g: _level(sample.pow(g), metering), 1.0, MIN_GAMMA, goal)
+
+
+def lift_gain(
+    images: Sequence[Float[Tensor, "H W 3"]],
+    target: float = METERED_TARGET,
+    metering: Metering = "luminance",
+    stride: int = 7,
+) -> float:
+    """The linear-light factor ``k`` in ``[1, MAX_GAIN]`` for which ``apply_gain(images, k)`` meters at
+    ``target`` (1 when the scene already meters at least ``target``). Bisection on a strided sample."""
+    goal = _goal(target, metering)
+    sample = _sample(images, stride)
+    if sample.numel() == 0 or _level(sample, metering) >= goal:
+        return 1.0
+    return _bisect(lambda k: _level(_gain(sample, k), metering), 1.0, MAX_GAIN, goal)
+
+
+def _shoulder(u: Tensor) -> Tensor:
+    """Identity up to :data:`KNEE`, then an exponential roll-off towards 1 (see :data:`KNEE`)."""
+    span = 1.0 - KNEE
+    return torch.where(u <= KNEE, u, KNEE + span * -torch.expm1(-(u - KNEE).clamp_min(0.0) / span))
+
+
+def _gain(srgb: Float[Tensor, "*batch 3"], gain: float) -> Float[Tensor, "*batch 3"]:
+    """sRGB [0, 1] -> times ``gain`` in linear light, shoulder, -> sRGB [0, 1]."""
+    import kornia
+
+    linear = _shoulder(_linear(srgb.clamp(0.0, 1.0)) * gain)
+    as_image = linear.reshape(-1, 3).T[:, :, None]
+    return kornia.color.linear_rgb_to_rgb(as_image)[:, :, 0].T.reshape(srgb.shape).clamp(0.0, 1.0)
+
+
+def apply_gain(images: Sequence[Float[Tensor, "H W 3"]], gain: float) -> List[Float[Tensor, "H W 3"]]:
+    """Every view times ``gain`` in linear light with the highlight shoulder; the inputs themselves when
+    ``gain == 1``."""
+    if gain == 1.0:
+        return list(images)
+    return [_gain(im, gain) for im in images]
+
+
+def lift(
+    images: Sequence[Float[Tensor, "H W 3"]],
+    curve: Curve,
+    target: float = METERED_TARGET,
+    metering: Metering = "luminance",
+) -> float:
+    """The ``curve``'s parameter (``k`` for ``gain``, ``g`` for ``power``) that brings ``images`` to ``target``."""
+    if curve == "gain":
+        return lift_gain(images, target, metering)
+    if curve == "power":
+        return lift_gamma(images, target, metering)
+    raise ValueError(f"exposure curve must be gain or power, got {curve!r}")
+
+
+def apply_curve(images: Sequence[Float[Tensor, "H W 3"]], curve: Curve, value: float) -> List[Float[Tensor, "H W 3"]]:
+    """``curve`` with the parameter :func:`lift` chose."""
+    return apply_gain(images, value) if curve == "gain" else apply_gamma(images, value)
 
 
 def apply_gamma(images: Sequence[Float[Tensor, "H W 3"]], gamma: float) -> List[Float[Tensor, "H W 3"]]:

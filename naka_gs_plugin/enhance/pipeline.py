@@ -38,7 +38,7 @@ from naka_gs_plugin.enhance.correction import (
     load_correction,
     resolve_mode,
 )
-from naka_gs_plugin.enhance.exposure import METERED_TARGET, Metering, apply_gamma, lift_gamma
+from naka_gs_plugin.enhance.exposure import METERED_TARGET, Curve, Metering, apply_curve, lift
 from naka_gs_plugin.enhance.naka import linear_stretch, naka_rushton, stretch_stats
 from naka_gs_plugin.progress import StageProgress
 
@@ -78,9 +78,13 @@ class EnhanceConfig(InstantiateConfig):
     a dark capture's colour is noise at the pixel scale."""
     exposure: Union[float, Literal["none"]] = METERED_TARGET
     """Scene exposure after the correction network (:mod:`naka_gs_plugin.enhance.exposure`): when the
-    enhanced views meter below this sRGB level, one curve ``x ** g`` shared by every view lifts them there
-    (default 0.505, the metered level of normal-light photos); ``none`` keeps the network's exposure.
-    Applied after the cache."""
+    enhanced views meter below this sRGB level, one curve (``exposure_curve``) shared by every view lifts
+    them there (default 0.505, the metered level of normal-light photos); ``none`` keeps the network's
+    exposure. Applied after the cache."""
+    exposure_curve: Curve = "gain"
+    """The curve ``exposure`` lifts with: ``gain``, every linear value times one factor with a highlight
+    shoulder (a longer exposure: blacks and contrast kept), or ``power``, ``x ** g`` on the sRGB values
+    (lifts shadows most, flattening the views; -2.0 dB on LOM bike, docs/real-scenes.md)."""
     exposure_metering: Metering = "luminance"
     """How ``exposure`` reads a scene's level: ``luminance``, the mean luminance in linear light, as a
     camera meters (a dark-toned scene with bright areas is not lifted as if under-exposed), or ``mean``,
@@ -96,6 +100,7 @@ class EnhanceConfig(InstantiateConfig):
         on the mean sRGB metering: their ``config.yml`` keeps both."""
         state.setdefault("chroma", "network")
         state.setdefault("exposure_metering", "mean")
+        state.setdefault("exposure_curve", "power")
         self.__dict__.update(state)
 
     def correction_path(self) -> Optional[Path]:
@@ -164,6 +169,11 @@ class Enhancer:
             raise ValueError(
                 "--pipeline.datamanager.enhance.exposure-metering must be luminance or mean, "
                 f"got {config.exposure_metering!r} (default luminance)"
+            )
+        if config.exposure_curve not in ("gain", "power"):
+            raise ValueError(
+                "--pipeline.datamanager.enhance.exposure-curve must be gain or power, "
+                f"got {config.exposure_curve!r} (default gain)"
             )
         if config.chroma not in ("capture", "network"):
             raise ValueError(
@@ -296,11 +306,11 @@ class Enhancer:
                     self._write(keys[i], out[i])
                     progress.advance(task)
         done = [o for o in out if o is not None]
-        gamma = 1.0
+        curve, value = self.config.exposure_curve, 1.0
         if self.config.exposure != "none":
-            gamma = lift_gamma(done, float(self.config.exposure), self.config.exposure_metering)
-        if gamma != 1.0:
-            done = [(im * 65535.0).round() / 65535.0 for im in apply_gamma(done, gamma)]
+            value = lift(done, curve, float(self.config.exposure), self.config.exposure_metering)
+        if value != 1.0:
+            done = [(im * 65535.0).round() / 65535.0 for im in apply_curve(done, curve, value)]
         seconds = time.perf_counter() - start
         self.last_run = {
             "computed": len(todo),
@@ -308,14 +318,16 @@ class Enhancer:
             "seconds": seconds,
             "naka_seconds": naka_s,
             "correction_seconds": correction_s,
-            "exposure_gamma": gamma,
+            "exposure_curve": curve,
+            "exposure_value": value,
         }
         CONSOLE.log(
             f"[naka-gs] {description}: {len(images)} images, {len(todo)} computed, "
             f"{len(images) - len(todo)} from cache ({self.cache_dir or 'cache off'}) in {seconds:.2f} s"
             + (
-                f", exposure lifted to {self.config.exposure} ({self.config.exposure_metering} metering, gamma {gamma:.3f})"
-                if gamma != 1.0
+                f", exposure lifted to {self.config.exposure} ({self.config.exposure_metering} metering, "
+                f"{'gain' if curve == 'gain' else 'gamma'} {value:.3f})"
+                if value != 1.0
                 else ""
             ),
             markup=False,

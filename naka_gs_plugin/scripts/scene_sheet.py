@@ -91,7 +91,8 @@ class SceneSheet:
             "step": step,
             "train_views": len(train),
             "enhanced_mean_all_views": mean_brightness(train),
-            "exposure_gamma": datamanager.enhancer.last_run.get("exposure_gamma"),
+            "exposure_curve": datamanager.enhancer.last_run.get("exposure_curve"),
+            "exposure_value": datamanager.enhancer.last_run.get("exposure_value"),
             "enhanced_mean": float(np.mean([r["enhanced_mean"] for r in records])),
             "render_mean": float(np.mean([r["render_mean"] for r in records])),
             "novel_render_mean": float(np.mean([r["novel_render_mean"] for r in records])),
@@ -100,10 +101,10 @@ class SceneSheet:
             "sheet": str(output),
         }
         output.with_suffix(".json").write_text(json.dumps(report, indent=1))
-        gamma = report["exposure_gamma"]
+        curve, value = report["exposure_curve"], report["exposure_value"]
         CONSOLE.print(
             f"[naka-gs scene-sheet] {len(train)} training views, enhanced mean {report['enhanced_mean_all_views']:.3f}"
-            + (f" (exposure gamma {gamma:.3f})" if gamma is not None else "")
+            + (f" (exposure {curve} {value:.3f})" if value is not None else "")
             + f"; sheet views: enhanced {report['enhanced_mean']:.3f}, render {report['render_mean']:.3f}, "
             f"novel render {report['novel_render_mean']:.3f}; wrote {output} (columns: {' | '.join(COLUMNS)}) "
             f"and {output.with_suffix('.json')}",
