@@ -24,7 +24,7 @@ Images are sRGB-encoded in [0, 1], channel-last ``[H, W, 3]``.
 
 from __future__ import annotations
 
-from typing import List, Literal, Sequence
+from typing import Callable, List, Literal, Sequence
 
 import torch
 from jaxtyping import Float
@@ -80,11 +80,17 @@ def _luminance(srgb: Float[Tensor, "N 3"]) -> float:
     return float((_linear(srgb) @ srgb.new_tensor(LUMA)).mean())
 
 
-def _encode(linear: float) -> float:
-    """Linear [0, 1] -> sRGB [0, 1] of one grey level."""
+def _srgb(linear: Float[Tensor, "*batch 3"]) -> Float[Tensor, "*batch 3"]:
+    """Linear RGB [0, 1] -> sRGB, channel-last (the inverse of :func:`_linear`)."""
     import kornia
 
-    return float(kornia.color.linear_rgb_to_rgb(torch.full((3, 1, 1), linear, dtype=torch.float64))[0, 0, 0])
+    as_image = linear.reshape(-1, 3).T[:, :, None]  # [3, N, 1]
+    return kornia.color.linear_rgb_to_rgb(as_image)[:, :, 0].T.reshape(linear.shape)
+
+
+def _encode(linear: float) -> float:
+    """Linear [0, 1] -> sRGB [0, 1] of one grey level."""
+    return float(_srgb(torch.full((1, 3), linear, dtype=torch.float64))[0, 0])
 
 
 def metered_level(images: Sequence[Float[Tensor, "H W 3"]], metering: Metering = "luminance") -> float:
@@ -130,6 +136,24 @@ def _bisect(level, weakest: float, strongest: float, goal: float) -> float:
     return 0.5 * (weakest + strongest)
 
 
+def _lift(
+    images: Sequence[Float[Tensor, "H W 3"]],
+    curve: Callable[[Tensor, float], Tensor],
+    weakest: float,
+    strongest: float,
+    target: float,
+    metering: Metering,
+    stride: int,
+) -> float:
+    """The parameter of ``curve(sample, parameter)`` between ``weakest`` (no change) and ``strongest`` at
+    which a strided sample of ``images`` meters at ``target``; ``weakest`` when it already does."""
+    goal = _goal(target, metering)
+    sample = _sample(images, stride)
+    if sample.numel() == 0 or _level(sample, metering) >= goal:
+        return weakest
+    return _bisect(lambda p: _level(curve(sample, p), metering), weakest, strongest, goal)
+
+
 def lift_gamma(
     images: Sequence[Float[Tensor, "H W 3"]],
     target: float = METERED_TARGET,
@@ -138,11 +162,7 @@ def lift_gamma(
 ) -> float:
     """The exponent ``g`` in ``[MIN_GAMMA, 1]`` for which ``images ** g`` meter at ``target`` (1 when the
     scene already meters at least ``target``). Bisection on a strided sample of the pixels."""
-    goal = _goal(target, metering)
-    sample = _sample(images, stride)
-    if sample.numel() == 0 or _level(sample, metering) >= goal:
-        return 1.0
-    return _bisect(lambda g: _level(sample.pow(g), metering), 1.0, MIN_GAMMA, goal)
+    return _lift(images, torch.pow, 1.0, MIN_GAMMA, target, metering, stride)
 
 
 def lift_gain(
@@ -153,11 +173,7 @@ def lift_gain(
 ) -> float:
     """The linear-light factor ``k`` in ``[1, MAX_GAIN]`` for which ``apply_gain(images, k)`` meters at
     ``target`` (1 when the scene already meters at least ``target``). Bisection on a strided sample."""
-    goal = _goal(target, metering)
-    sample = _sample(images, stride)
-    if sample.numel() == 0 or _level(sample, metering) >= goal:
-        return 1.0
-    return _bisect(lambda k: _level(_gain(sample, k), metering), 1.0, MAX_GAIN, goal)
+    return _lift(images, _gain, 1.0, MAX_GAIN, target, metering, stride)
 
 
 def _shoulder(u: Tensor) -> Tensor:
@@ -168,11 +184,7 @@ def _shoulder(u: Tensor) -> Tensor:
 
 def _gain(srgb: Float[Tensor, "*batch 3"], gain: float) -> Float[Tensor, "*batch 3"]:
     """sRGB [0, 1] -> times ``gain`` in linear light, shoulder, -> sRGB [0, 1]."""
-    import kornia
-
-    linear = _shoulder(_linear(srgb.clamp(0.0, 1.0)) * gain)
-    as_image = linear.reshape(-1, 3).T[:, :, None]
-    return kornia.color.linear_rgb_to_rgb(as_image)[:, :, 0].T.reshape(srgb.shape).clamp(0.0, 1.0)
+    return _srgb(_shoulder(_linear(srgb.clamp(0.0, 1.0)) * gain)).clamp(0.0, 1.0)
 
 
 def apply_gain(images: Sequence[Float[Tensor, "H W 3"]], gain: float) -> List[Float[Tensor, "H W 3"]]:
@@ -199,7 +211,11 @@ def lift(
 
 def apply_curve(images: Sequence[Float[Tensor, "H W 3"]], curve: Curve, value: float) -> List[Float[Tensor, "H W 3"]]:
     """``curve`` with the parameter :func:`lift` chose."""
-    return apply_gain(images, value) if curve == "gain" else apply_gamma(images, value)
+    if curve == "gain":
+        return apply_gain(images, value)
+    if curve == "power":
+        return apply_gamma(images, value)
+    raise ValueError(f"exposure curve must be gain or power, got {curve!r}")
 
 
 def apply_gamma(images: Sequence[Float[Tensor, "H W 3"]], gamma: float) -> List[Float[Tensor, "H W 3"]]:
