@@ -3,22 +3,14 @@ multiple of the noise level estimated by Immerkaer's method; hold-out weights, L
     .venv/bin/python docs/experiments/tone/denoise2d.py bike chair shrub sofa
 """
 
-import json
 import sys
-from pathlib import Path
 
 import cv2
-import kornia
 import numpy as np
 import torch
+from lom2d import enhanced, scores, truths
 
-from naka_gs_plugin.data.images import read_rgb
-from naka_gs_plugin.enhance.checkpoint import load_correction
-from naka_gs_plugin.enhance.chroma import capture_chroma
-from naka_gs_plugin.enhance.correction import CorrectionRunner
 from naka_gs_plugin.enhance.exposure import apply_gamma
-from naka_gs_plugin.enhance.naka import naka_enhance
-from naka_gs_plugin.metrics import psnr
 
 torch.set_grad_enabled(False)
 G = dict(bike=0.703, chair=1.0, shrub=0.925, sofa=1.0)
@@ -43,26 +35,14 @@ def nlm(im, k):
 KS = [0.5, 1.0, 1.5, 2.0]
 tot = {}
 for scene in sys.argv[1:]:
-    root = Path("../shared/data/lom") / scene
-    runner = CorrectionRunner(load_correction(f"outputs/correction-loo/{scene}/best.pt"), "auto")
-    rows = {}
-    for i, frame in enumerate(json.loads((root / "transforms_test.json").read_text())["frames"]):
-        name = Path(frame["file_path"]).name
-        low = torch.from_numpy(read_rgb(root / "low" / name))
-        naka = naka_enhance(low, 0.05)
-        enh = runner(low.permute(2, 0, 1)[None], naka.permute(2, 0, 1)[None])["enhanced"][0].permute(1, 2, 0)
-        tgt = apply_gamma([capture_chroma(enh, low)], G[scene])[0]
-        truth = torch.from_numpy(read_rgb(root / "high" / name))
-        cands = {"target": tgt}
-        sig = None
-        for k in KS:
-            cands[f"nlm{k}"], sig = nlm(tgt, k)
-        for key, im in cands.items():
-            ss = float(kornia.metrics.ssim(im.permute(2, 0, 1)[None], truth.permute(2, 0, 1)[None], 11).mean())
-            rows.setdefault(key, []).append((psnr(im, truth), ss))
-        print(scene, i, "sigma_est %.2f" % sig, flush=True)
-    for key, v in rows.items():
-        m = np.mean(v, 0)
+    targets = apply_gamma(enhanced(scene, "test"), G[scene])
+    cands, sig = {"target": targets}, []
+    for k in KS:
+        out = [nlm(t, k) for t in targets]
+        cands[f"nlm{k}"], sig = [o[0] for o in out], [o[1] for o in out]
+    print(scene, "sigma_est", " ".join(f"{x:.2f}" for x in sig))
+    for key, ims in cands.items():
+        m = scores(ims, truths(scene))
         tot.setdefault(key, []).append(m)
         print(f"{scene} {key}: {m[0]:.2f} / {m[1]:.3f}")
 for key, v in tot.items():

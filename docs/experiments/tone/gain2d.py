@@ -3,21 +3,13 @@ knees 1 (clip), 0.8 and 0.6; parameters from every other training view, scored o
     .venv/bin/python docs/experiments/tone/gain2d.py bike shrub
 """
 
-import json
 import sys
-from pathlib import Path
 
 import kornia
-import numpy as np
 import torch
+from lom2d import enhanced, scores, truths
 
-from naka_gs_plugin.data.images import read_rgb
-from naka_gs_plugin.enhance.checkpoint import load_correction
-from naka_gs_plugin.enhance.chroma import capture_chroma
-from naka_gs_plugin.enhance.correction import CorrectionRunner
 from naka_gs_plugin.enhance.exposure import METERED_TARGET, _linear, apply_gamma, lift_gamma
-from naka_gs_plugin.enhance.naka import naka_enhance
-from naka_gs_plugin.metrics import psnr
 
 torch.set_grad_enabled(False)
 W = torch.tensor([0.2126, 0.7152, 0.0722])
@@ -63,27 +55,9 @@ def find_k(ims, knee):
     return lo
 
 
-def enhance(runner, low):
-    naka = naka_enhance(low, 0.05)
-    enh = runner(low.permute(2, 0, 1)[None], naka.permute(2, 0, 1)[None])["enhanced"][0].permute(1, 2, 0)
-    return capture_chroma(enh, low)
-
-
 tot = {}
 for scene in sys.argv[1:]:
-    root = Path("../shared/data/lom") / scene
-    runner = CorrectionRunner(load_correction(f"outputs/correction-loo/{scene}/best.pt"), "auto")
-
-    def ld(split):
-        return [
-            torch.from_numpy(read_rgb(root / "low" / Path(f["file_path"]).name))
-            for f in json.loads((root / f"transforms_{split}.json").read_text())["frames"]
-        ]
-
-    names = [Path(f["file_path"]).name for f in json.loads((root / "transforms_test.json").read_text())["frames"]]
-    tr = [enhance(runner, lo) for lo in ld("train")][::2]
-    te = [enhance(runner, lo) for lo in ld("test")]
-    truth = [torch.from_numpy(read_rgb(root / "high" / n)) for n in names]
+    tr, te, truth = enhanced(scene, "train")[::2], enhanced(scene, "test"), truths(scene)
     g0 = lift_gamma(tr)
     variants = {"power(current)": apply_gamma(te, g0)}
     for knee in (1.0, 0.8, 0.6):
@@ -91,11 +65,7 @@ for scene in sys.argv[1:]:
         variants[f"gain knee{knee} k={k:.2f}"] = [gain(im, k, knee) for im in te]
     print(scene, f"g0={g0:.3f}")
     for key, ims in variants.items():
-        sc = [
-            (psnr(im, tt), float(kornia.metrics.ssim(CHW(im)[None], CHW(tt)[None], 11).mean()))
-            for im, tt in zip(ims, truth)
-        ]
-        m = np.mean(sc, 0)
+        m = scores(ims, truth)
         tot.setdefault(key.split(" k=")[0], []).append(m)
         print(
             f"  {key:26s} {m[0]:.2f} / {m[1]:.3f} std {float(torch.stack([(i @ W).std() for i in ims]).mean()):.3f} mean {float(torch.stack([i.mean() for i in ims]).mean()):.3f}",

@@ -35,7 +35,6 @@ for i, (camera, batch) in enumerate(dm.fixed_indices_eval_dataloader):
         return float(-10 * torch.log10(((a - b) ** 2).mean()))
 
     # per-channel affine fit of render to truth
-    A = torch.stack([r.reshape(-1, 3)[:, c] for c in range(3)], 1)
     fit = torch.empty_like(r)
     for c in range(3):
         x = r[..., c].reshape(-1)
