@@ -29,8 +29,8 @@ scores = []
 for i in range(0, len(cameras), 3):
     with torch.no_grad():
         render = model.get_outputs_for_camera(cameras[i : i + 1].to(model.device))["rgb"].clamp(0, 1).cpu()
-    target = targets[i]["image"][..., :3].float()
-    target = target / 255 if target.max() > 1.5 else target
+    target = targets[i]["image"][..., :3]
+    target = target.float() / 255 if target.dtype == torch.uint8 else target.float()  # cache_images_type
     ssim = float(ssim_fn(render.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None], data_range=1.0))
     scores.append((psnr(render, target), ssim))
     print(
