@@ -416,6 +416,7 @@ def plot(results: Dict[str, Any], out: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
     ok = [r for r in results["runs"].values() if r["status"] == "ok" and r["evals"]]
     scenes = sorted({r["scene"] for r in ok})
@@ -446,6 +447,11 @@ def plot(results: Dict[str, Any], out: Path) -> None:
             ax.set_ylabel("test PSNR (dB)")
             if kind == "seconds":
                 ax.set_xscale("log")
+                # Plain numbers at 1-2-5 steps; matplotlib's own minor labels overlap on a log axis that
+                # spans less than a decade or two.
+                ax.xaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+                ax.xaxis.set_major_formatter(FuncFormatter(lambda x, _: f"{x:g}"))
+                ax.xaxis.set_minor_formatter(NullFormatter())
             ax.grid(alpha=0.3)
             ax.legend(fontsize=7)
         fig.suptitle(f"naka-gs bench '{results['grid']}' — {results.get('machine', '')}", fontsize=9)
