@@ -26,7 +26,7 @@ with tempfile.TemporaryDirectory() as tmp:
         image = Image.open(report["sheet"]).convert("RGB")
         draw = ImageDraw.Draw(image)
         font = ImageFont.load_default()
-        left, top, right, bottom = draw.textbbox((4, 2), scene, font=font)
+        _, _, right, bottom = draw.textbbox((4, 2), scene, font=font)
         draw.rectangle((0, 0, right + 4, bottom + 3), fill=(0, 0, 0))
         draw.text((4, 2), scene, fill=(255, 255, 255), font=font)
         rows.append(np.asarray(image))
