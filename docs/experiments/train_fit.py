@@ -12,6 +12,7 @@ from nerfstudio.utils.eval_utils import eval_setup
 from torchmetrics.functional import structural_similarity_index_measure as ssim_fn
 
 from naka_gs_plugin.enhance.exposure import LUMA
+from naka_gs_plugin.enhance.pipeline import to_float01
 from naka_gs_plugin.metrics import psnr
 
 _, pipeline, _, _ = eval_setup(Path(sys.argv[1]), test_mode="val")
@@ -29,8 +30,7 @@ scores = []
 for i in range(0, len(cameras), 3):
     with torch.no_grad():
         render = model.get_outputs_for_camera(cameras[i : i + 1].to(model.device))["rgb"].clamp(0, 1).cpu()
-    target = targets[i]["image"][..., :3]
-    target = target.float() / 255 if target.dtype == torch.uint8 else target.float()  # cache_images_type
+    target = to_float01(targets[i]["image"])  # uint8 or float32 cache (cache_images_type)
     ssim = float(ssim_fn(render.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None], data_range=1.0))
     scores.append((psnr(render, target), ssim))
     print(
