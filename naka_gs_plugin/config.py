@@ -73,6 +73,7 @@ naka_gs_method = MethodSpecification(
             "quats": _adam(0.001),
             "camera_opt": _adam(1e-4, final=5e-7, warmup=1000),
             "bilateral_grid": _adam(2e-3, final=1e-4, warmup=1000),
+            "appearance": _adam(1e-3, final=1e-4),
         },
         viewer=ViewerConfig(num_rays_per_chunk=1 << 15),
         vis="viewer",

@@ -11,6 +11,7 @@ from nerfstudio.models.splatfacto import RGB2SH, SplatfactoModel
 
 from naka_gs_plugin.data.images import read_rgb
 from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig
+from naka_gs_plugin.model.appearance import ViewAppearance
 from naka_gs_plugin.model.naka_gs_model import NakaGSModelConfig, NonFiniteTrainingError, viewmat_from_c2w
 from tests.helpers import train_steps
 
@@ -160,3 +161,68 @@ def test_upstream_get_outputs_is_the_pinned_one():
         f"nerfstudio's SplatfactoModel.get_outputs changed (sha256 {digest}): port the change into "
         "NakaGSModel.get_outputs (naka_gs_plugin/model/naka_gs_model.py), then update the pin in tests/test_model.py"
     )
+
+
+def test_view_appearance_averages_the_identity_and_clamps():
+    app = ViewAppearance(4)
+    assert all(torch.equal(app(torch.full((2, 3), 0.4), i), torch.full((2, 3), 0.4)) for i in range(4))
+    with torch.no_grad():
+        app.log_gain.copy_(torch.randn(4, 3, generator=torch.Generator().manual_seed(1)))
+        app.offset.copy_(torch.randn(4, 3, generator=torch.Generator().manual_seed(2)) * 0.1)
+    gains, offsets = zip(*(app.transform(i) for i in range(4)))
+    torch.testing.assert_close(torch.stack(gains).log().mean(0), torch.zeros(3), atol=1e-6, rtol=0)
+    torch.testing.assert_close(torch.stack(offsets).mean(0), torch.zeros(3), atol=1e-6, rtol=0)
+    out = app(torch.rand(16, 3, generator=torch.Generator().manual_seed(3)) * 4 - 2, 0)
+    assert out.min() >= 0 and out.max() <= 1
+    with pytest.raises(IndexError, match="training view 4"):
+        app.transform(4)
+
+
+def test_appearance_applies_to_training_views_only(frames):
+    cameras, _ = frames
+    # full size and a fixed background in training too (splatfacto: downscaled early, random background)
+    model, _, _ = _model(num_downscales=0, background_color="black")
+    assert set(model.get_param_groups()["appearance"]) == set(model.view_appearance.parameters())
+    with torch.no_grad():
+        model.view_appearance.log_gain[1] = math.log(2.0)  # view 1 twice as bright as the average
+    camera = cameras[1:2]
+    camera.metadata = {"cam_idx": 1}
+    model.step, model.optimizers = 0, {}
+    model.eval()
+    with torch.no_grad():
+        canonical = model.get_outputs(camera)["rgb"]
+    model.train()  # with autograd: training's rasterization keeps the 2D means' gradients
+    seen = model.get_outputs(camera)["rgb"].detach()
+    gain = model.view_appearance.transform(1)[0]
+    torch.testing.assert_close(seen, torch.clamp(canonical * gain, 0, 1))
+    assert not torch.equal(seen, canonical)
+
+
+def test_appearance_none_adds_no_parameters():
+    model, _, _ = _model(appearance="none")
+    assert model.view_appearance is None and "appearance" not in model.get_param_groups()
+    assert not any(k.startswith("view_appearance") for k in model.state_dict())
+
+
+def test_runs_saved_before_appearance_load_without_it():
+    state = dict(NakaGSModelConfig().__dict__)
+    del state["appearance"]
+    cfg = NakaGSModelConfig.__new__(NakaGSModelConfig)
+    cfg.__setstate__(state)
+    assert cfg.appearance == "none"
+
+
+def test_appearance_absorbs_one_views_exposure(frames):
+    cameras, _ = frames
+    # frozen Gaussians (no learning rate, no densification), full size, fixed background
+    model, _, _ = _model(num_downscales=0, background_color="black", stop_split_at=0)
+    model.eval()
+    with torch.no_grad():  # targets the Gaussians fit exactly, view 2 exposed 0.6x
+        canonical = [model.get_outputs(cameras[i : i + 1])["rgb"] for i in range(len(cameras))]
+    images = [im * (0.6 if i == 2 else 1.0) for i, im in enumerate(canonical)]
+    frozen = {k: 0.0 for k in model.gauss_params}
+    train_steps(model, cameras, images, steps=10 * len(images), lrs={**frozen, "appearance": 0.02})
+    with torch.no_grad():
+        ratios = torch.stack([model.view_appearance(c, i).mean() / c.mean() for i, c in enumerate(canonical)])
+    others = torch.cat([ratios[:2], ratios[3:]])
+    assert ratios[2] < 0.8 and others.min() > ratios[2] + 0.15, f"rendered / canonical brightness per view: {ratios}"

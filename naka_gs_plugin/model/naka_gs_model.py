@@ -16,6 +16,9 @@ stock splatfacto breaks on a CPU-only or offline machine:
   failed call re-attempts a CUDA JIT build).
 - ``get_image_metrics_and_images``: LPIPS is left out (not NaN) when its weights are unavailable,
   so ``ns-eval`` JSON stays valid JSON.
+- per-view appearance (``appearance affine``, :mod:`naka_gs_plugin.model.appearance`): a gain and
+  offset per training view, applied to its render in training only (after splatfacto's bilateral grid
+  would be); ``get_param_groups`` adds their group.
 - training safety: a non-finite loss or parameter stops training with a clear message before
   anything non-finite can reach a checkpoint.
 """
@@ -25,7 +28,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, Literal, Optional, Tuple, Type, Union
+from typing import Dict, List, Literal, Optional, Tuple, Type, Union
 from unittest import mock
 
 import torch
@@ -34,7 +37,9 @@ from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.models.splatfacto import RGB2SH, SplatfactoModel, SplatfactoModelConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
+from torch.nn import Parameter
 
+from naka_gs_plugin.model.appearance import ViewAppearance
 from naka_gs_plugin.model.lpips import LazyLPIPS
 
 
@@ -52,6 +57,15 @@ class NakaGSModelConfig(SplatfactoModelConfig):
     imports, else torch (pure PyTorch, same results, slower). gsplat needs CUDA, cpu-fast CPU."""
     lpips_weights: Optional[Path] = None
     """Local copy of torchvision's alexnet-owt-7be5be79.pth for LPIPS on offline machines."""
+    appearance: Literal["affine", "none"] = "affine"
+    """``affine``: a per-channel gain and offset per training view, learned in training and averaging the
+    identity over the views (the views are enhanced one by one, so their brightness differs); eval and
+    novel views render the views' average appearance. ``none``: one appearance for all views."""
+
+    def __setstate__(self, state: dict) -> None:
+        """Runs saved before ``appearance`` existed have no such parameters in their checkpoints."""
+        state.setdefault("appearance", "none")
+        self.__dict__.update(state)
 
 
 def _numba_available() -> bool:
@@ -102,7 +116,14 @@ class NakaGSModel(SplatfactoModel):
             # point got an infinite colour logit with sh_degree 0. 1e-4 keeps |logit| <= 9.2.
             dc = RGB2SH(rgb) if self.config.sh_degree > 0 else torch.logit(rgb, eps=1e-4)
             self.gauss_params["features_dc"].data.copy_(dc)
+        self.view_appearance = ViewAppearance(self.num_train_data) if self.config.appearance == "affine" else None
         self._backend_logged: Optional[str] = None
+
+    def get_param_groups(self) -> Dict[str, List[Parameter]]:
+        groups = super().get_param_groups()
+        if self.view_appearance is not None:
+            groups["appearance"] = list(self.view_appearance.parameters())
+        return groups
 
     # ------------------------------------------------------------------ rasterization
     def _backend(self, device: torch.device) -> str:
@@ -215,6 +236,9 @@ class NakaGSModel(SplatfactoModel):
         if self.config.use_bilateral_grid and self.training:
             if camera.metadata is not None and "cam_idx" in camera.metadata:
                 rgb = self._apply_bilateral_grid(rgb, camera.metadata["cam_idx"], H, W)
+        if self.view_appearance is not None and self.training:
+            if camera.metadata is not None and "cam_idx" in camera.metadata:
+                rgb = self.view_appearance(rgb, int(camera.metadata["cam_idx"]))
         depth_im = None
         if render_mode == "RGB+ED":
             depth_im = render[:, ..., 3:4]
