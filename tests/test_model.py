@@ -181,7 +181,7 @@ def test_view_appearance_averages_the_identity_and_clamps():
 def test_appearance_applies_to_training_views_only(frames):
     cameras, _ = frames
     # full size and a fixed background in training too (splatfacto: downscaled early, random background)
-    model, _, _ = _model(num_downscales=0, background_color="black")
+    model, _, _ = _model(appearance="affine", num_downscales=0, background_color="black")
     assert set(model.get_param_groups()["appearance"]) == set(model.view_appearance.parameters())
     with torch.no_grad():
         model.view_appearance.log_gain[1] = math.log(2.0)  # view 1 twice as bright as the average
@@ -215,7 +215,7 @@ def test_runs_saved_before_appearance_load_without_it():
 def test_appearance_absorbs_one_views_exposure(frames):
     cameras, _ = frames
     # frozen Gaussians (no learning rate, no densification), full size, fixed background
-    model, _, _ = _model(num_downscales=0, background_color="black", stop_split_at=0)
+    model, _, _ = _model(appearance="affine", num_downscales=0, background_color="black", stop_split_at=0)
     model.eval()
     with torch.no_grad():  # targets the Gaussians fit exactly, view 2 exposed 0.6x
         canonical = [model.get_outputs(cameras[i : i + 1])["rgb"] for i in range(len(cameras))]
