@@ -5,10 +5,14 @@
 - :func:`fit_threads`: PyTorch starts one thread per physical core of the *machine*, also inside a
   container limited to fewer CPUs (CPU affinity, a cgroup CPU quota); more threads than CPUs turns
   every OpenMP barrier into a wait for a descheduled thread. numba's kernels follow PyTorch's count.
+- :func:`keep_freed_memory`: glibc's allocator settings for training, whose every step allocates and
+  frees the same multi-megabyte tensors.
 """
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import math
 import os
 from pathlib import Path
@@ -72,3 +76,31 @@ def fit_threads() -> int:
             print(f"[naka-gs] using {usable} threads instead of {threads}: {usable} CPUs usable ({why})", flush=True)
         return usable
     return threads
+
+
+MMAP_THRESHOLD = 32 << 20
+"""Allocations above this go straight to the kernel (glibc's largest allowed value; its default
+starts at 128 KiB and adapts)."""
+TRIM_THRESHOLD = 256 << 20
+"""Freed memory kept at the top of the heap before glibc returns it to the kernel (default 128 KiB,
+adapting). The most a training process keeps mapped beyond what it uses."""
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # mallopt parameters, glibc's malloc.h
+
+
+def keep_freed_memory() -> bool:
+    """Have glibc's malloc keep freed blocks of up to ``MMAP_THRESHOLD`` mapped for reuse; False where
+    the C library has no ``mallopt`` (macOS, Windows), which changes nothing there.
+
+    Once the correction network has run in a process (lean mode, LOM 500x375), every training step's
+    tensors were mapped fresh from the kernel and page-faulted: the SSIM loss's forward and backward took
+    226 ms instead of 64, a full-size step on LOM shrub (95k Gaussians) 480 ms instead of 270 with the
+    same images read from the cache (docs/cpu.md). Fixed thresholds (which also stop glibc adapting them)
+    bring it back to 295 ms. Called after enhancement, before training; setting them beforehand does not
+    help, the correction run changes the heap after it."""
+    name = ctypes.util.find_library("c")
+    try:
+        libc = ctypes.CDLL(name)
+        mallopt = libc.mallopt
+    except (OSError, AttributeError, TypeError):
+        return False
+    return bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)) and bool(mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD))

@@ -52,3 +52,31 @@ def test_fit_threads_caps_at_the_usable_cpus_and_logs_once(monkeypatch, capsys):
         assert cpu.fit_threads() == 1 and torch.get_num_threads() == 1
     finally:
         torch.set_num_threads(threads)
+
+
+class _FakeLibc:
+    def __init__(self):
+        self.calls = []
+
+    def mallopt(self, param, value):
+        self.calls.append((param, value))
+        return 1
+
+
+def test_keep_freed_memory_sets_both_glibc_thresholds(monkeypatch):
+    libc = _FakeLibc()
+    monkeypatch.setattr(cpu.ctypes, "CDLL", lambda name: libc)
+    assert cpu.keep_freed_memory()
+    assert libc.calls == [(-3, 32 << 20), (-1, 256 << 20)]  # M_MMAP_THRESHOLD, M_TRIM_THRESHOLD
+
+
+def test_keep_freed_memory_is_a_no_op_without_mallopt(monkeypatch):
+    monkeypatch.setattr(cpu.ctypes, "CDLL", lambda name: object())  # a C library without mallopt (macOS)
+    assert not cpu.keep_freed_memory()
+
+
+def test_keep_freed_memory_reports_a_refused_value(monkeypatch):
+    libc = _FakeLibc()
+    libc.mallopt = lambda param, value: 0  # glibc refuses a value out of range
+    monkeypatch.setattr(cpu.ctypes, "CDLL", lambda name: libc)
+    assert not cpu.keep_freed_memory()

@@ -7,6 +7,7 @@ import time
 import pytest
 import torch
 
+import naka_gs_plugin.data.lowlight_datamanager as dm_mod
 import naka_gs_plugin.enhance.pipeline as pipeline_mod
 from naka_gs_plugin.data.images import read_rgb, read_stored
 from naka_gs_plugin.data.lowlight_datamanager import LowLightDatamanagerConfig, MissingGroundTruthError
@@ -32,6 +33,15 @@ def test_train_images_are_naka_enhanced(toy_scene):
         low = torch.from_numpy(read_rgb(path))
         want = capture_chroma(naka_enhance(low), low)  # the default colour: the capture's
         assert torch.allclose(data["image"], want, atol=2e-5)  # 16-bit cache quantisation
+
+
+def test_allocator_is_set_for_training_once_the_train_images_are_enhanced(toy_scene, monkeypatch):
+    calls = []
+    monkeypatch.setattr(dm_mod, "keep_freed_memory", lambda: calls.append("set"))
+    dm = _dm(toy_scene, correction="none")
+    assert calls == []  # nothing loaded yet: nerfstudio loads the training images lazily
+    dm.cached_train
+    assert calls == ["set"]
 
 
 def test_eval_images_are_byte_identical_to_source(toy_scene):

@@ -22,6 +22,7 @@ from nerfstudio.data.datasets.base_dataset import InputDataset
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 
+from naka_gs_plugin.cpu import keep_freed_memory
 from naka_gs_plugin.data.images import read_raw, read_rgb
 from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
@@ -136,6 +137,7 @@ class LowLightDatamanager(FullImageDatamanager[LowLightDataset]):
             for data, image in zip(cached, enhanced):
                 image = image.to(data["image"].device)
                 data["image"] = (image * 255.0).round().to(torch.uint8) if data["image"].dtype == torch.uint8 else image
+            keep_freed_memory()  # training starts next; see its docstring for the 1.6x it is worth after a correction run
         return cached
 
     def _no_gt_message(self) -> str:
