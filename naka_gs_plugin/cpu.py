@@ -5,14 +5,13 @@
 - :func:`fit_threads`: PyTorch starts one thread per physical core of the *machine*, also inside a
   container limited to fewer CPUs (CPU affinity, a cgroup CPU quota); more threads than CPUs turns
   every OpenMP barrier into a wait for a descheduled thread. numba's kernels follow PyTorch's count.
-- :func:`keep_freed_memory`: glibc's allocator settings for training, whose every step allocates and
-  frees the same multi-megabyte tensors.
+- :func:`keep_freed_memory`: glibc's allocator thresholds for training, whose every step allocates and
+  frees the same multi-megabyte tensors (:func:`glibc`: the C library's allocator calls, if glibc).
 """
 
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import math
 import os
 from pathlib import Path
@@ -78,29 +77,34 @@ def fit_threads() -> int:
     return threads
 
 
+def glibc():
+    """glibc's ``mallopt``/``malloc_trim`` through ctypes, or None off glibc (macOS, musl, Windows)."""
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+    except OSError:
+        return None
+    return libc if hasattr(libc, "mallopt") and hasattr(libc, "malloc_trim") else None
+
+
+M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3  # mallopt parameters, glibc's malloc.h
 MMAP_THRESHOLD = 32 << 20
-"""Allocations above this go straight to the kernel (glibc's largest allowed value; its default
-starts at 128 KiB and adapts)."""
+"""Blocks above this are mapped from the kernel and unmapped on free (glibc's largest allowed value)."""
 TRIM_THRESHOLD = 256 << 20
-"""Freed memory kept at the top of the heap before glibc returns it to the kernel (default 128 KiB,
-adapting). The most a training process keeps mapped beyond what it uses."""
-_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # mallopt parameters, glibc's malloc.h
+"""Freed memory kept at the top of the heap before glibc hands it back: the most a process keeps
+mapped beyond what it uses."""
 
 
 def keep_freed_memory() -> bool:
-    """Have glibc's malloc keep freed blocks of up to ``MMAP_THRESHOLD`` mapped for reuse; False where
-    the C library has no ``mallopt`` (macOS, Windows), which changes nothing there.
+    """Have glibc keep freed blocks of up to ``MMAP_THRESHOLD`` in the heap for reuse, for training, whose
+    every step allocates and frees the same multi-megabyte tensors; False off glibc (nothing changes).
 
-    Once the correction network has run in a process (lean mode, LOM 500x375), every training step's
-    tensors were mapped fresh from the kernel and page-faulted: the SSIM loss's forward and backward took
-    226 ms instead of 64, a full-size step on LOM shrub (95k Gaussians) 480 ms instead of 270 with the
-    same images read from the cache (docs/cpu.md). Fixed thresholds (which also stop glibc adapting them)
-    bring it back to 295 ms. Called after enhancement, before training; setting them beforehand does not
-    help, the correction run changes the heap after it."""
-    name = ctypes.util.find_library("c")
-    try:
-        libc = ctypes.CDLL(name)
-        mallopt = libc.mallopt
-    except (OSError, AttributeError, TypeError):
+    A fresh process gets this from glibc's adaptive thresholds, but they stop adapting for good once
+    anything sets them with ``mallopt`` (the lean correction forward does, :func:`naka_gs_plugin.enhance.
+    lean_ops.reuse_freed_memory`). Pinned at glibc's initial 128 KiB, every training tensor was mapped
+    fresh and page-faulted on each step: on LOM shrub (500x375, 95k Gaussians, AMD EPYC Zen 4) the SSIM
+    loss's forward and backward took 226 ms instead of 48 and a full-size step 480 ms instead of 297
+    (docs/cpu.md)."""
+    libc = glibc()
+    if libc is None:
         return False
-    return bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)) and bool(mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD))
+    return bool(libc.mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD)) and bool(libc.mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD))

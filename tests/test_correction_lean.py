@@ -8,6 +8,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+import naka_gs_plugin.cpu as cpu
 import naka_gs_plugin.enhance.correction as correction
 import naka_gs_plugin.enhance.lean_ops as lean_ops
 from naka_gs_plugin.enhance.correction import MODES, CorrectionRunner
@@ -207,7 +208,7 @@ def test_auto_mode_picks_bfloat16_only_with_native_support(monkeypatch, capsys, 
         correction.resolve_mode("fast")
 
 
-def test_reuse_freed_memory_restores_glibc_defaults(monkeypatch):
+def test_reuse_freed_memory_leaves_the_training_thresholds(monkeypatch):
     calls = []
 
     class FakeLibc:
@@ -219,12 +220,14 @@ def test_reuse_freed_memory_restores_glibc_defaults(monkeypatch):
             calls.append(("trim", pad))
             return 1
 
-    monkeypatch.setattr(lean_ops, "_glibc", lambda: FakeLibc())
+    monkeypatch.setattr(lean_ops, "glibc", lambda: FakeLibc())
+    monkeypatch.setattr(cpu, "glibc", lambda: FakeLibc())
     with pytest.raises(RuntimeError):
         with lean_ops.reuse_freed_memory():
             assert calls == [("mallopt", -3, 192 << 20), ("mallopt", -1, 1 << 30)]
             raise RuntimeError("the forward failed")
-    assert calls[2:] == [("mallopt", -1, 128 * 1024), ("mallopt", -3, 128 * 1024), ("trim", 0)]
+    # Not glibc's 128 KiB start values: pinned, they made every later training step page-fault.
+    assert calls[2:] == [("mallopt", -3, 32 << 20), ("mallopt", -1, 256 << 20), ("trim", 0)]
 
 
 def test_heap_reuse_only_while_the_largest_activation_is_small(monkeypatch):

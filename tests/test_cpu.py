@@ -62,6 +62,9 @@ class _FakeLibc:
         self.calls.append((param, value))
         return 1
 
+    def malloc_trim(self, pad):
+        return 1
+
 
 def test_keep_freed_memory_sets_both_glibc_thresholds(monkeypatch):
     libc = _FakeLibc()

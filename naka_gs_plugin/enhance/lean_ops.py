@@ -30,7 +30,6 @@ and written through its 16-bit pattern (numba has no bfloat16 type).
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import functools
 import math
 from functools import partial
@@ -46,6 +45,7 @@ from numba import njit, prange, types
 from numba.extending import intrinsic, overload
 from torch import Tensor, nn
 
+from naka_gs_plugin.cpu import M_MMAP_THRESHOLD, M_TRIM_THRESHOLD, glibc, keep_freed_memory
 from naka_gs_plugin.enhance.correction_net import ChromaGuided, ConvUnit, ResBlock, Stage, standardize
 
 _CHUNK = 4096
@@ -418,17 +418,6 @@ def lean_predict_maps(
     return mul, add
 
 
-def _glibc():
-    """glibc's ``mallopt``/``malloc_trim`` through ctypes, or None off glibc (macOS, musl, Windows)."""
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-        return libc if hasattr(libc, "mallopt") and hasattr(libc, "malloc_trim") else None
-    except OSError:
-        return None
-
-
-_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
-_GLIBC_DEFAULTS = {_M_TRIM_THRESHOLD: 128 * 1024, _M_MMAP_THRESHOLD: 128 * 1024}
 HEAP_BLOCK_LIMIT = {torch.bfloat16: 192 << 20, torch.float32: 64 << 20}
 """Largest full-resolution activation (the stem's width x H x W) for which the lean forward keeps
 freed blocks in the heap (:func:`reuse_freed_memory`), by the body's dtype: 1764x1172 in bfloat16
@@ -446,20 +435,21 @@ def reuse_freed_memory(max_block: int = HEAP_BLOCK_LIMIT[torch.bfloat16]) -> Ite
     page-faults its memory back in, zeroed by the kernel: measured on a 2-core CPU, ``x + x`` on a
     32x1172x1764 bfloat16 tensor took 50 ms against 6 ms in place. PyTorch has no caching CPU
     allocator to switch on, and ``THP_MEM_ALLOC_ENABLE`` is read once when torch is imported, so the
-    lean forward raises ``M_MMAP_THRESHOLD`` (and ``M_TRIM_THRESHOLD``) for the call and restores
-    glibc's defaults afterwards, handing the unused heap back with ``malloc_trim``. A no-op where the
+    lean forward raises ``M_MMAP_THRESHOLD`` (and ``M_TRIM_THRESHOLD``) for the call, then hands the
+    unused heap back with ``malloc_trim`` under the process-wide thresholds of
+    :func:`naka_gs_plugin.cpu.keep_freed_memory`: glibc's adaptive defaults cannot be restored once set,
+    and pinning their 128 KiB start values made every later training step page-fault. A no-op where the
     C library is not glibc."""
-    libc = _glibc()
+    libc = glibc()
     if libc is None:
         yield
         return
-    libc.mallopt(_M_MMAP_THRESHOLD, max_block)
-    libc.mallopt(_M_TRIM_THRESHOLD, 1 << 30)
+    libc.mallopt(M_MMAP_THRESHOLD, max_block)
+    libc.mallopt(M_TRIM_THRESHOLD, 1 << 30)
     try:
         yield
     finally:
-        for option, value in _GLIBC_DEFAULTS.items():
-            libc.mallopt(option, value)
+        keep_freed_memory()
         libc.malloc_trim(0)
 
 
