@@ -102,7 +102,7 @@ def keep_freed_memory() -> bool:
     anything sets them with ``mallopt`` (the lean correction forward does, :func:`naka_gs_plugin.enhance.
     lean_ops.reuse_freed_memory`). Pinned at glibc's initial 128 KiB, every training tensor was mapped
     fresh and page-faulted on each step: on LOM shrub (500x375, 95k Gaussians, AMD EPYC Zen 4) the SSIM
-    loss's forward and backward took 226 ms instead of 48 and a full-size step 480 ms instead of 297
+    loss's forward and backward took 226 ms instead of 47 and a full-size step 480 ms instead of 283-299
     (docs/cpu.md)."""
     libc = glibc()
     if libc is None:

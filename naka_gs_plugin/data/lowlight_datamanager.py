@@ -137,7 +137,7 @@ class LowLightDatamanager(FullImageDatamanager[LowLightDataset]):
             for data, image in zip(cached, enhanced):
                 image = image.to(data["image"].device)
                 data["image"] = (image * 255.0).round().to(torch.uint8) if data["image"].dtype == torch.uint8 else image
-            keep_freed_memory()  # training starts next; see its docstring for the 1.6x it is worth after a correction run
+            keep_freed_memory()  # training starts next: the same heap thresholds whether or not the correction ran
         return cached
 
     def _no_gt_message(self) -> str:
