@@ -124,11 +124,93 @@ step_train() {
   return $rc
 }
 
+step_correction() {
+  # The correction network's GPU recipe ($RECIPE, default naka_gs_plugin/configs/correction/gpu.yaml):
+  # the shipped weights (all data) and the 4 leave-one-scene-out variants of the LOM protocol, trained
+  # at once on the one GPU (CPU cores split between them for loading and augmentation). Data staged by
+  # prepare_correction.sh in two parts, .gpu-corr-a (carried by an earlier call on this warm machine)
+  # and .gpu-corr-b. Epochs: the recipe's, lowered so that all five fit $CORRECTION_BUDGET_S seconds
+  # (default 400) by a timed probe of training iterations. Results: $OUT/correction-<name>.pt (float16,
+  # as shipped; provenance inside) and correction-runs.tgz (logs, history.json per run).
+  local a=.gpu-corr-a b=.gpu-corr-b recipe=${RECIPE:-naka_gs_plugin/configs/correction/gpu.yaml}
+  [ -d $a/lol/train/high ] || { echo "no $a/: carry it in a call just before this one (prepare_correction.sh)"; return 1; }
+  [ -d $b/lol/train/low ] || { echo "no $b/: carry it (prepare_correction.sh)"; return 1; }
+  "$PY" -c "import kornia, tyro" 2>/dev/null ||
+    "$PY" -m pip install --quiet --no-index --no-deps --upgrade --target "$SITE" $b/wheels/*.whl || return 1
+  local lol=$ROOT/.gpu-build/lol work=$ROOT/.gpu-build/correction
+  rm -rf "$lol" "$work" && mkdir -p "$lol/train" "$work"
+  ln -s "$ROOT/$a/lol/train/high" "$lol/train/high"
+  ln -s "$ROOT/$b/lol/train/low" "$lol/train/low"
+  ln -s "$ROOT/$a/lol/eval" "$lol/eval"
+  local names=(all bike chair shrub sofa)
+  local epochs
+  local device=${CORRECTION_DEVICE:-cuda}  # cpu: a dry run of this step on any machine
+  epochs=$("$PY" - "$recipe" "${CORRECTION_BUDGET_S:-400}" "${#names[@]}" "$device" <<'PYEOF'
+import sys, time
+import torch
+from naka_gs_plugin.enhance.correction_loss import CorrectionLoss
+from naka_gs_plugin.enhance.correction_net import ChromaGuided
+from naka_gs_plugin.enhance.correction_train import config_from_yaml, with_naka
+
+config, budget, runs, device = config_from_yaml(sys.argv[1]), float(sys.argv[2]), int(sys.argv[3]), sys.argv[4]
+sync = torch.cuda.synchronize if device.startswith("cuda") else lambda: None
+torch.manual_seed(0)
+net, loss_fn = ChromaGuided(config.model).to(device), CorrectionLoss().to(device)
+opt = torch.optim.AdamW(net.parameters(), lr=config.lr)
+b, c = config.batch_size, config.crop
+
+def step():
+    low = torch.rand(b, c, c, 3) * 0.1
+    naka, low = with_naka(low).to(device), low.permute(0, 3, 1, 2).contiguous().to(device)
+    out = net(low, naka)
+    terms = loss_fn(out["enhanced"], torch.rand_like(naka), naka, out["mul_map"], out["add_map"])
+    opt.zero_grad()
+    terms["total"].backward()
+    opt.step()
+
+for _ in range(3):
+    step()
+sync()
+t0 = time.perf_counter()
+for _ in range(10):
+    step()
+sync()
+per_it = (time.perf_counter() - t0) / 10
+iters = (config.images_per_epoch or 1) // b
+# 1.3: validation, augmentation on the CPU and five processes sharing one GPU, from the probe alone.
+epochs = max(1, min(config.epochs, int(budget / (runs * per_it * iters * 1.3))))
+print(f"probe: {per_it * 1000:.1f} ms per iteration (batch {b}, crop {c}); {runs} runs x {iters} iterations per epoch in {budget:.0f} s -> {epochs} epochs", file=sys.stderr)
+print(epochs)
+PYEOF
+  ) || return 1
+  echo "training ${#names[@]} networks for $epochs epochs"
+  local threads=$(($(nproc) / ${#names[@]})); [ "$threads" -ge 1 ] || threads=1
+  local pids=() n hold
+  for n in "${names[@]}"; do
+    hold=()
+    [ "$n" = all ] || hold=(--hold-out "$n")
+    timeout "$((${CORRECTION_BUDGET_S:-400} + 90))" "$PY" -m naka_gs_plugin.scripts.train_correction --config "$recipe" \
+      --lol "$lol" --lom "$b"/lom/{bike,chair,shrub,sofa} "${hold[@]}" --epochs "$epochs" --device "$device" \
+      --threads "$threads" --output-dir "$work/$n" --export-to "$OUT/correction-$n.pt" >"$work/$n.log" 2>&1 &
+    pids+=($!)
+  done
+  local rc=0
+  for i in "${!pids[@]}"; do wait "${pids[$i]}" || { echo "${names[$i]}: exit $?"; rc=1; }; done
+  for n in "${names[@]}"; do
+    tail -n 3 "$work/$n.log"
+    # A run stopped by the timeout still sends back its best epoch so far.
+    [ -f "$OUT/correction-$n.pt" ] || [ ! -f "$work/$n/best.pt" ] ||
+      "$PY" -c "import sys; from pathlib import Path; from naka_gs_plugin.enhance.correction_train import export_weights; export_weights(Path(sys.argv[1]), Path(sys.argv[2]))" "$work/$n/best.pt" "$OUT/correction-$n.pt"
+  done
+  tar czf "$OUT/correction-runs.tgz" -C "$work" --exclude '*.pt' .
+  return $rc
+}
+
 steps=("$@")
 [ ${#steps[@]} -eq 0 ] && steps=(env install build parity tests timing)
 failed=()
 for step in "${steps[@]}"; do
-  if ! declare -F "step_$step" >/dev/null; then echo "unknown step $step (env install build parity tests timing train)"; exit 2; fi
+  if ! declare -F "step_$step" >/dev/null; then echo "unknown step $step (env install build parity tests timing train correction)"; exit 2; fi
   echo "=== $step"
   started=$SECONDS
   "step_$step" 2>&1 | tee "$OUT/$step.log"
