@@ -305,6 +305,16 @@ def test_hold_out_leaves_a_scene_out_of_training_and_validation(tmp_path):
 def test_recipe_yaml_loads_and_unknown_keys_fail(tmp_path):
     cfg = config_from_yaml(CONFIGS / "correction/default.yaml")
     assert cfg.crop > 0 and cfg.lol and len(cfg.lom) == 4 and isinstance(cfg.lom[0], Path)
+    gpu = config_from_yaml(CONFIGS / "correction/gpu.yaml")
+    # The GPU recipe is the CPU one with the paper's crops and a longer schedule: same data and optimizer.
+    assert (gpu.crop, cfg.crop) == (256, 128) and gpu.epochs > cfg.epochs
+    assert (gpu.lol, gpu.lom, gpu.lom_weight, gpu.lr, gpu.batch_size) == (
+        cfg.lol,
+        cfg.lom,
+        cfg.lom_weight,
+        cfg.lr,
+        cfg.batch_size,
+    )
     bad = tmp_path / "bad.yaml"
     bad.write_text("epochz: 3\n")
     with pytest.raises(ValueError, match="epochz"):
@@ -410,3 +420,20 @@ def test_training_on_cuda_improves_psnr_and_saves_cpu_weights(tmp_path):
     assert psnrs[2] > psnrs[0] + 1.0
     net = load_correction(tmp_path / "run" / "latest.pt")  # saved on the CPU, validated there the same
     assert validate(net, PairSet(lol_pairs(data, "eval"), "v"))["psnr"] == pytest.approx(psnrs[2], abs=1e-3)
+
+
+def test_iteration_seconds_times_training_steps_at_the_recipe_size(monkeypatch):
+    from naka_gs_plugin.enhance import correction_train
+
+    seen = []
+    forward = ChromaGuided.forward
+
+    def spy(self, low, naka):
+        seen.append((tuple(low.shape), self.training))
+        return forward(self, low, naka)
+
+    monkeypatch.setattr(ChromaGuided, "forward", spy)
+    torch.manual_seed(0)
+    seconds = correction_train.iteration_seconds(TrainConfig(batch_size=2, crop=32), "cpu", repeats=2, warmup=1)
+    assert seconds > 0 and np.isfinite(seconds)
+    assert seen == [((2, 3, 32, 32), True)] * 3

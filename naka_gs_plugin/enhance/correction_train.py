@@ -529,6 +529,37 @@ def train(config: TrainConfig) -> Dict[str, list]:
     return history
 
 
+def iteration_seconds(config: TrainConfig, device: str = "cpu", repeats: int = 10, warmup: int = 3) -> float:
+    """Mean seconds of one training iteration (Naka, forward, loss, backward, AdamW step) at ``config``'s
+    network, batch and crop on random crops, after ``warmup`` untimed ones: what sizes a time-budgeted run
+    (``scripts/gpu/run.sh correction``) and compares devices. Data loading and augmentation not included."""
+    device_ = training_device(device)
+    sync = torch.cuda.synchronize if device_.type == "cuda" else lambda: None
+    gen = torch.Generator().manual_seed(config.seed)
+    net = ChromaGuided(config.model).to(device_)
+    loss_fn = CorrectionLoss(vgg_weights=config.vgg_weights).to(device_)
+    opt = torch.optim.AdamW(net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    shape = (config.batch_size, config.crop, config.crop, 3)
+
+    def step() -> None:
+        low = torch.rand(shape, generator=gen) * 0.1  # dark crops, as LOL's low images
+        naka = with_naka(low).to(device_)
+        gt = torch.rand(naka.shape, generator=gen).to(device_)
+        with torch.autocast(device_.type, dtype=torch.bfloat16, enabled=config.bf16):
+            o = net(low.permute(0, 3, 1, 2).contiguous().to(device_), naka)
+        terms = loss_fn(o["enhanced"].float(), gt, naka, o["mul_map"].float(), o["add_map"].float())
+        optimizer_step(net, opt, terms["total"], config.grad_clip)
+
+    for _ in range(warmup):
+        step()
+    sync()
+    start = time.perf_counter()
+    for _ in range(repeats):
+        step()
+    sync()
+    return (time.perf_counter() - start) / repeats
+
+
 def export_weights(checkpoint: Path, dest: Path) -> Path:
     """A training checkpoint -> float16 weights + model config + provenance (epoch, validation PSNR per
     epoch, train config), without optimizer state: the format of the shipped default weights."""

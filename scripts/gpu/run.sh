@@ -146,40 +146,16 @@ step_correction() {
   local epochs
   local device=${CORRECTION_DEVICE:-cuda}  # cpu: a dry run of this step on any machine
   epochs=$("$PY" - "$recipe" "${CORRECTION_BUDGET_S:-400}" "${#names[@]}" "$device" <<'PYEOF'
-import sys, time
-import torch
-from naka_gs_plugin.enhance.correction_loss import CorrectionLoss
-from naka_gs_plugin.enhance.correction_net import ChromaGuided
-from naka_gs_plugin.enhance.correction_train import config_from_yaml, with_naka
+import sys
+from naka_gs_plugin.enhance.correction_train import config_from_yaml, iteration_seconds
 
 config, budget, runs, device = config_from_yaml(sys.argv[1]), float(sys.argv[2]), int(sys.argv[3]), sys.argv[4]
-sync = torch.cuda.synchronize if device.startswith("cuda") else lambda: None
-torch.manual_seed(0)
-net, loss_fn = ChromaGuided(config.model).to(device), CorrectionLoss().to(device)
-opt = torch.optim.AdamW(net.parameters(), lr=config.lr)
-b, c = config.batch_size, config.crop
-
-def step():
-    low = torch.rand(b, c, c, 3) * 0.1
-    naka, low = with_naka(low).to(device), low.permute(0, 3, 1, 2).contiguous().to(device)
-    out = net(low, naka)
-    terms = loss_fn(out["enhanced"], torch.rand_like(naka), naka, out["mul_map"], out["add_map"])
-    opt.zero_grad()
-    terms["total"].backward()
-    opt.step()
-
-for _ in range(3):
-    step()
-sync()
-t0 = time.perf_counter()
-for _ in range(10):
-    step()
-sync()
-per_it = (time.perf_counter() - t0) / 10
-iters = (config.images_per_epoch or 1) // b
+per_it = iteration_seconds(config, device)
+iters = (config.images_per_epoch or 1) // config.batch_size
 # 1.3: validation, augmentation on the CPU and five processes sharing one GPU, from the probe alone.
 epochs = max(1, min(config.epochs, int(budget / (runs * per_it * iters * 1.3))))
-print(f"probe: {per_it * 1000:.1f} ms per iteration (batch {b}, crop {c}); {runs} runs x {iters} iterations per epoch in {budget:.0f} s -> {epochs} epochs", file=sys.stderr)
+print(f"probe: {per_it * 1000:.1f} ms per iteration (batch {config.batch_size}, crop {config.crop}); "
+      f"{runs} runs x {iters} iterations per epoch in {budget:.0f} s -> {epochs} epochs", file=sys.stderr)
 print(epochs)
 PYEOF
   ) || return 1
