@@ -55,3 +55,20 @@ def test_config_of_a_run_with_init_on_the_model_still_loads():
     assert not hasattr(loaded.model, "init")
     fresh = yaml.load(yaml.dump(NakaGSPipelineConfig(init=PointInitConfig(points="random"))), Loader=yaml.Loader)
     assert fresh.init.points == "random"
+
+
+def test_cpu_schedule_stops_a_10k_decay_at_7k():
+    """On a CPU the run is 7k steps of a 10k schedule: learning rates decay over 10k, densification
+    stops at half of it (docs/real-scenes.md, "Slower decay"); on CUDA splatfacto's 30k throughout."""
+    from naka_gs_plugin import config
+
+    m = config.naka_gs_method.config
+    decaying = {k: v["scheduler"] for k, v in m.optimizers.items() if v["scheduler"] is not None}
+    assert {"means", "appearance"} <= set(decaying)
+    assert {s.max_steps for s in decaying.values()} == {config.DECAY_STEPS}
+    if config.CUDA:
+        assert m.max_num_iterations == config.DECAY_STEPS == 30000
+    else:
+        assert (m.max_num_iterations, config.DECAY_STEPS) == (7000, 10000)
+        assert m.pipeline.model.stop_split_at == config.DECAY_STEPS // 2
+        assert m.pipeline.model.stop_split_at < m.max_num_iterations
