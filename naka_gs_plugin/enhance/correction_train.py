@@ -349,6 +349,24 @@ def optimizer_step(net: torch.nn.Module, opt: torch.optim.Optimizer, loss: torch
     return True
 
 
+def train_step(
+    net: ChromaGuided,
+    loss_fn: CorrectionLoss,
+    opt: torch.optim.Optimizer,
+    low: Float[Tensor, "B H W 3"],
+    gt: Float[Tensor, "B 3 H W"],
+    config: TrainConfig,
+) -> Tuple[Dict[str, Tensor], bool]:
+    """One training iteration on CPU crops (sRGB, [0, 1]), run on the network's device: Naka, forward,
+    loss, backward and step. Returns the loss terms and whether the step was taken (:func:`optimizer_step`)."""
+    device = next(net.parameters()).device
+    naka = with_naka(low).to(device)
+    with torch.autocast(device.type, dtype=torch.bfloat16, enabled=config.bf16):
+        o = net(low.permute(0, 3, 1, 2).contiguous().to(device), naka)
+    terms = loss_fn(o["enhanced"].float(), gt.to(device), naka, o["mul_map"].float(), o["add_map"].float())
+    return terms, optimizer_step(net, opt, terms["total"], config.grad_clip)
+
+
 def _log(msg: str) -> None:
     CONSOLE.log(f"[naka-gs] {msg}", markup=False)
 
@@ -481,13 +499,9 @@ def train(config: TrainConfig) -> Dict[str, list]:
                     augment(train_set.low[i], train_set.high[i], config.crop, rng, config.scale_range) for i in idx
                 ]
                 low = torch.from_numpy(np.stack([c[0] for c in crops]))
-                gt = torch.from_numpy(np.stack([c[1] for c in crops])).permute(0, 3, 1, 2).contiguous().to(device)
-                naka = with_naka(low).to(device)
-                low = low.permute(0, 3, 1, 2).contiguous().to(device)
-                with torch.autocast(device.type, dtype=torch.bfloat16, enabled=config.bf16):
-                    o = net(low, naka)
-                terms = loss_fn(o["enhanced"].float(), gt, naka, o["mul_map"].float(), o["add_map"].float())
-                if not optimizer_step(net, opt, terms["total"], config.grad_clip):
+                gt = torch.from_numpy(np.stack([c[1] for c in crops])).permute(0, 3, 1, 2).contiguous()
+                terms, stepped = train_step(net, loss_fn, opt, low, gt, config)
+                if not stepped:
                     skipped += 1
                     _log(f"epoch {epoch} it {it + 1}: non-finite gradient norm, step skipped ({skipped} so far)")
                 for k, val in terms.items():
@@ -543,12 +557,7 @@ def iteration_seconds(config: TrainConfig, device: str = "cpu", repeats: int = 1
 
     def step() -> None:
         low = torch.rand(shape, generator=gen) * 0.1  # dark crops, as LOL's low images
-        naka = with_naka(low).to(device_)
-        gt = torch.rand(naka.shape, generator=gen).to(device_)
-        with torch.autocast(device_.type, dtype=torch.bfloat16, enabled=config.bf16):
-            o = net(low.permute(0, 3, 1, 2).contiguous().to(device_), naka)
-        terms = loss_fn(o["enhanced"].float(), gt, naka, o["mul_map"].float(), o["add_map"].float())
-        optimizer_step(net, opt, terms["total"], config.grad_clip)
+        train_step(net, loss_fn, opt, low, torch.rand(low.permute(0, 3, 1, 2).shape, generator=gen), config)
 
     for _ in range(warmup):
         step()
