@@ -45,7 +45,10 @@ def test_smoke_grid_runs_records_failure_resumes_and_reports(tmp_path, toy_scene
         run = runs[rid]
         assert run["status"] == "ok", run.get("error")
         assert [e["step"] for e in run["evals"]] == [3, 6]
-        assert all(e["psnr"] > 0 and e["gaussians"] > 0 and e["render_ms_per_image"] > 0 for e in run["evals"])
+        assert all(
+            e["psnr"] > 0 and 0 < e["lpips"] < 1.5 and e["gaussians"] > 0 and e["render_ms_per_image"] > 0
+            for e in run["evals"]
+        )
         assert run["evals"][0]["train_s"] < run["evals"][1]["train_s"]
         assert run["peak_rss_gb"] > 0.1 and run["stages"]["setup_s"] > 0
     # Naka is timed when it runs and is absent from the raw baseline.

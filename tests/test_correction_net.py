@@ -346,7 +346,9 @@ def test_eval_cli_scores_methods_and_neutral_net_equals_naka(tmp_path):
     means = json.loads(out.read_text())["datasets"]["LOL pairs eval"]["means"]
     assert set(means) == {"input", "naka", "naka+grayworld", "naka+net (exact)"}
     assert means["naka+net (exact)"]["psnr_all"] == pytest.approx(means["naka"]["psnr_all"], abs=1e-3)
+    assert means["naka+net (exact)"]["lpips_all"] == pytest.approx(means["naka"]["lpips_all"], abs=1e-3)
     assert means["naka"]["psnr_all"] > means["input"]["psnr_all"]
+    assert all(0.0 <= m["lpips_all"] < 1.5 for m in means.values())
     assert result["datasets"]["LOL pairs eval"]["n_images"] == 2
 
 

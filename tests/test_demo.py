@@ -30,6 +30,7 @@ def test_demo_trains_naka_gs_and_baseline_and_reports_metrics(tmp_path):
     assert report["psnr_enhanced_vs_truth_db"] > report["psnr_input_vs_truth_db"] + 3.0  # Naka brightens
     for name in ("naka-gs", "baseline"):
         assert math.isfinite(report[name]["test_psnr_db"]) and 0.0 <= report[name]["test_ssim"] <= 1.0
+        assert 0.0 < report[name]["test_lpips"] < 1.5  # offline, from the shipped weights
         assert report[name]["train_steps"] == 10
     saved = json.loads((tmp_path / "demo" / "report.json").read_text())
     assert saved["naka-gs"]["test_psnr_db"] == report["naka-gs"]["test_psnr_db"]

@@ -68,7 +68,7 @@ def test_viewmat_is_the_inverse_of_the_opencv_pose():
     assert torch.allclose(viewmat_from_c2w(c2w), torch.linalg.inv(opencv), atol=1e-5)
 
 
-def test_metrics_leave_out_lpips_when_weights_are_missing(frames, monkeypatch, tmp_path):
+def test_metrics_include_lpips_offline_from_the_shipped_weights(frames, monkeypatch, tmp_path):
     monkeypatch.setattr(torch.hub, "get_dir", lambda: str(tmp_path / "empty-hub"))
     monkeypatch.setattr(
         "torchvision.models._api.load_state_dict_from_url",
@@ -80,23 +80,39 @@ def test_metrics_leave_out_lpips_when_weights_are_missing(frames, monkeypatch, t
     with torch.no_grad():
         outputs = model.get_outputs(cameras[0:1])
     metrics, images_dict = model.get_image_metrics_and_images(outputs, {"image": images[0]})
-    assert "lpips" not in metrics and math.isfinite(metrics["psnr"]) and math.isfinite(metrics["ssim"])
+    assert all(math.isfinite(metrics[k]) for k in ("psnr", "ssim", "lpips")), metrics
+    assert 0.0 < metrics["lpips"] < 1.5
     assert "img" in images_dict
 
 
-def test_lpips_uses_a_local_weights_file(frames, tmp_path):
+def test_lpips_uses_a_local_backbone_file(frames, tmp_path):
     import torchvision
 
     torch.manual_seed(0)
     weights = tmp_path / "my_alexnet.pth"
-    torch.save(torchvision.models.alexnet().state_dict(), weights)
+    torch.save(torchvision.models.alexnet().state_dict(), weights)  # random: another backbone than the shipped one
     cameras, images = frames
-    model, _, _ = _model(lpips_weights=weights)
-    model.eval()
-    with torch.no_grad():
-        outputs = model.get_outputs(cameras[0:1])
-    metrics, _ = model.get_image_metrics_and_images(outputs, {"image": images[0]})
-    assert math.isfinite(metrics["lpips"])
+    scores = {}
+    for name, path in (("shipped", None), ("file", weights)):
+        model, _, _ = _model(lpips_weights=path)
+        model.eval()
+        with torch.no_grad():
+            outputs = model.get_outputs(cameras[0:1])
+        scores[name] = model.get_image_metrics_and_images(outputs, {"image": images[0]})[0]["lpips"]
+    assert math.isfinite(scores["file"]) and abs(scores["file"] - scores["shipped"]) > 1e-3, scores
+
+
+def test_a_wrong_lpips_weights_file_stops_in_one_line(tmp_path):
+    truncated = tmp_path / "cut.pth"
+    truncated.write_bytes(b"PK\x03\x04" + b"\0" * 100)  # a zip header, then nothing: a cut-off download
+    other = tmp_path / "other.pth"
+    torch.save({"conv.weight": torch.zeros(3, 3)}, other)
+    for path, says in ((truncated, "not a readable torch weights file"), (other, "not AlexNet weights")):
+        with pytest.raises(SystemExit) as info:
+            _model(lpips_weights=path)
+        message = str(info.value.code)
+        assert "\n" not in message and str(path) in message and says in message, message
+        assert "--pipeline.model.lpips-weights" in message
 
 
 def test_densification_changes_the_gaussian_count_on_cpu(frames):

@@ -9,7 +9,8 @@ inside two masks defined on the **ground truth** (so every method is scored on t
 * edge: the training loss's gray-edge mask (``sqrt(|Laplacian(GT luma)| / max)``), used as soft weights.
 
 PSNR = ``10 log10(1 / MSE)`` with the (mask-weighted) MSE over pixels and channels, per image, then
-averaged; SSIM = kornia's map (Gaussian window 11, sigma 1.5), mask-weighted mean. Images sRGB [0, 1].
+averaged; SSIM = kornia's map (Gaussian window 11, sigma 1.5), mask-weighted mean; LPIPS (AlexNet, v0.1,
+:mod:`naka_gs_plugin.model.lpips`) over the whole image. Images sRGB [0, 1].
 Prints one table per dataset and writes all numbers (per image too) as JSON.
 """
 
@@ -25,6 +26,9 @@ from torch import Tensor
 
 from naka_gs_plugin.enhance.correction_loss import gray_edge_mask, luminance
 from naka_gs_plugin.metrics import psnr
+from naka_gs_plugin.model.lpips import LazyLPIPS
+
+LPIPS = LazyLPIPS()
 
 
 def gray_world(image: Float[Tensor, "B 3 H W"]) -> Float[Tensor, "B 3 H W"]:
@@ -42,18 +46,19 @@ def masks(gt: Float[Tensor, "1 3 H W"], quantile: float = 0.85) -> Dict[str, Ten
 
 
 def scores(pred: Tensor, gt: Tensor, weights: Dict[str, Tensor]) -> Dict[str, float]:
-    """PSNR/SSIM of one image pair under each weight map."""
+    """PSNR/SSIM of one image pair under each weight map, and LPIPS of the whole image (``lpips_all``)."""
     ssim_map = kornia.metrics.ssim(pred, gt, 11)
     out = {}
     for name, w in weights.items():
         out[f"psnr_{name}"] = psnr(pred, gt, w)
         out[f"ssim_{name}"] = float((ssim_map * w).sum() / (3 * w.sum().clamp(min=1e-12)))
+    out["lpips_all"] = float(LPIPS(pred, gt))
     return out
 
 
 def means_table(title: str, means: Dict[str, Dict[str, float]]) -> Table:
     table = Table(title=title)
-    cols = ["psnr_all", "ssim_all", "psnr_bright", "ssim_bright", "psnr_edge", "ssim_edge"]
+    cols = ["psnr_all", "ssim_all", "lpips_all", "psnr_bright", "ssim_bright", "psnr_edge", "ssim_edge"]
     table.add_column("method")
     for c in cols:
         table.add_column(c.replace("_", " "), justify="right")
@@ -64,7 +69,7 @@ def means_table(title: str, means: Dict[str, Dict[str, float]]) -> Table:
 
 def markdown(result: Dict[str, dict]) -> str:
     """The means as a Markdown table (for notes)."""
-    cols = ["psnr_all", "ssim_all", "psnr_bright", "ssim_bright", "psnr_edge", "ssim_edge"]
+    cols = ["psnr_all", "ssim_all", "lpips_all", "psnr_bright", "ssim_bright", "psnr_edge", "ssim_edge"]
     lines = ["| dataset | method | " + " | ".join(cols) + " |", "|---" * (len(cols) + 2) + "|"]
     for dname, d in result["datasets"].items():
         for m, v in d["means"].items():

@@ -13,7 +13,7 @@ or one of the short aliases in :data:`ALIASES`. A path that does not exist is an
 ignored.
 
 Per run the result records wall time of each stage (enhance, correction, points/PPM, training up
-to each milestone, rendering and evaluation), PSNR / SSIM (LPIPS when its weights are local),
+to each milestone, rendering and evaluation), PSNR / SSIM / LPIPS,
 Gaussian count and peak resident memory. Outputs in ``--out``: ``results.json`` (all runs),
 ``results.md`` (a table), ``psnr_vs_seconds.png`` (one curve per family, Pareto front marked) and
 ``psnr_vs_steps.png``. Re-running resumes: finished runs (``ok`` or ``failed``) are not redone.
@@ -238,14 +238,14 @@ def run_one(run: Dict[str, Any], out: Path) -> Dict[str, Any]:
             "eval_s": round(eval_s, 3),
             "psnr": float(np.mean([m["psnr"] for m in scores])),
             "ssim": float(np.mean([m["ssim"] for m in scores])),
+            "lpips": float(np.mean([m["lpips"] for m in scores])),
             "gaussians": int(pipeline.model.num_points),
             "render_ms_per_image": round(1000.0 * render_s / len(test_views), 2),
         }
-        if all("lpips" in m for m in scores):
-            record["lpips"] = float(np.mean([m["lpips"] for m in scores]))
         evals.append(record)
         CONSOLE.print(
             f"[naka-gs bench] {run['scene']}/{run['family']} step {record['step']}: PSNR {record['psnr']:.2f} dB, "
+            f"SSIM {record['ssim']:.3f}, LPIPS {record['lpips']:.3f}, "
             f"{record['gaussians']} Gaussians, {record['train_s']:.1f} s training",
             markup=False,
         )
@@ -400,7 +400,7 @@ def markdown_table(results: Dict[str, Any]) -> str:
         kind = str(pts.get("source", "?")).split(" ")[0]  # "PLY /path/points.ply" -> "PLY"
         seed = kind + (f" ({pts['count']})" if pts.get("count") else "")
         for e in run["evals"]:
-            lp = f"{e['lpips']:.3f}" if "lpips" in e else "n/a"
+            lp = f"{e['lpips']:.3f}" if "lpips" in e else "n/a"  # records written before LPIPS was offline
             rows.append(
                 f"| {rid} | ok | {e['step']} | {e['psnr']:.2f} | {e['ssim']:.3f} | {lp} | {e['gaussians']} | {seed} | "
                 f"{s.get('enhance_s', 0):.2f} | {s.get('correction_s', 0):.2f} | {s.get('points_s', 0):.2f} | "

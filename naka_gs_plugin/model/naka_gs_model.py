@@ -4,9 +4,9 @@ Everything splatfacto does (parameters, L1 + SSIM loss, SH schedule, camera opti
 grid, gsplat's DefaultStrategy densification, export) is inherited. Overridden, and only because
 stock splatfacto breaks on a CPU-only or offline machine:
 
-- ``populate_modules``: stock code calls ``.cuda()`` on seed colours and builds LPIPS eagerly
-  (downloads AlexNet; offline it raises). We keep the seed colours on the CPU and build LPIPS
-  lazily outside the module tree (:mod:`naka_gs_plugin.model.lpips`).
+- ``populate_modules``: stock code calls ``.cuda()`` on seed colours and builds torchmetrics' LPIPS
+  (downloads AlexNet; offline it raises). We keep the seed colours on the CPU and build LPIPS from
+  the weights we ship, lazily and outside the module tree (:mod:`naka_gs_plugin.model.lpips`).
 - ``get_outputs``: stock code calls ``K.cuda()``, the ``torch.compile``d ``get_viewmat`` (~20 s per
   CPU process) and gsplat's CUDA-only ``rasterization``, all inside the one method with no hook
   between, so it is a copy of splatfacto 1.1.5's (a test pins the upstream source: an upgrade fails
@@ -14,8 +14,6 @@ stock splatfacto breaks on a CPU-only or offline machine:
   tile rasterizer (:mod:`naka_gs_plugin.model.rasterize_cpu_fast`) or our PyTorch one
   (:mod:`naka_gs_plugin.model.rasterize`) otherwise (never by try/except around gsplat: each
   failed call re-attempts a CUDA JIT build).
-- ``get_image_metrics_and_images``: LPIPS is left out (not NaN) when its weights are unavailable,
-  so ``ns-eval`` JSON stays valid JSON.
 - per-view appearance (``appearance affine``, :mod:`naka_gs_plugin.model.appearance`): a gain and
   offset per training view, applied to its render in training only (after splatfacto's bilateral grid
   would be); ``get_param_groups`` adds their group.
@@ -25,10 +23,9 @@ stock splatfacto breaks on a CPU-only or offline machine:
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List, Literal, Optional, Tuple, Type, Union
+from typing import Dict, List, Literal, Optional, Type, Union
 from unittest import mock
 
 import torch
@@ -40,7 +37,7 @@ from torch import Tensor
 from torch.nn import Parameter
 
 from naka_gs_plugin.model.appearance import ViewAppearance
-from naka_gs_plugin.model.lpips import LazyLPIPS
+from naka_gs_plugin.model.lpips import LazyLPIPS, load_lpips
 
 
 class NonFiniteTrainingError(RuntimeError):
@@ -49,14 +46,15 @@ class NonFiniteTrainingError(RuntimeError):
 
 @dataclass
 class NakaGSModelConfig(SplatfactoModelConfig):
-    """Splatfacto's options plus the rasterizer backend and an optional local LPIPS weights file."""
+    """Splatfacto's options plus the rasterizer backend, per-view appearance and LPIPS's backbone weights."""
 
     _target: Type = field(default_factory=lambda: NakaGSModel)
     rasterizer: Literal["auto", "gsplat", "torch", "cpu-fast"] = "auto"
     """auto: gsplat for CUDA tensors, otherwise cpu-fast (compiled numba tile kernels) when numba
     imports, else torch (pure PyTorch, same results, slower). gsplat needs CUDA, cpu-fast CPU."""
     lpips_weights: Optional[Path] = None
-    """Local copy of torchvision's alexnet-owt-7be5be79.pth for LPIPS on offline machines."""
+    """LPIPS's AlexNet backbone from this file (torchvision's ``alexnet-owt-7be5be79.pth``) instead of the
+    copy shipped with naka-gs (the same numbers)."""
     appearance: Literal["affine", "none"] = "affine"
     """``affine``: a per-channel gain and offset per training view, learned in training and averaging the
     identity over the views (the views are enhanced one by one, so their brightness differs); eval and
@@ -103,7 +101,12 @@ class NakaGSModel(SplatfactoModel):
             # Hide the colours from splatfacto (its colour branch calls .cuda()); set them below.
             seed_rgb = self.seed_points[1]
             self.seed_points = (self.seed_points[0], seed_rgb[:0])
-        # Splatfacto imports LPIPS inside populate_modules; swap in our lazy, fail-soft one there.
+        if self.config.lpips_weights is not None:
+            try:  # a wrong file fails here, in one line, rather than at the first evaluation
+                load_lpips(self.config.lpips_weights)
+            except ValueError as err:
+                raise SystemExit(f"naka-gs: --pipeline.model.lpips-weights {err}") from None
+        # Splatfacto imports LPIPS inside populate_modules; swap in ours (offline weights, lazy) there.
         with mock.patch(
             "torchmetrics.image.lpip.LearnedPerceptualImagePatchSimilarity",
             lambda **_: LazyLPIPS(self.config.lpips_weights),
@@ -266,12 +269,3 @@ class NakaGSModel(SplatfactoModel):
                 "they could be checkpointed; the last checkpoint is intact -- lower the learning rates"
             )
         super().step_post_backward(step)
-
-    def get_image_metrics_and_images(
-        self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]
-    ) -> Tuple[Dict[str, float], Dict[str, Tensor]]:
-        metrics, images = super().get_image_metrics_and_images(outputs, batch)
-        for key in ("lpips", "cc_lpips"):
-            if key in metrics and not math.isfinite(metrics[key]):
-                del metrics[key]  # offline without weights: omit rather than write invalid JSON (NaN)
-        return metrics, images

@@ -128,6 +128,7 @@ class Demo:
             "gaussians": int(pipeline.model.num_points),
             "test_psnr_db": float(metrics["psnr"]),
             "test_ssim": float(metrics["ssim"]),
+            "test_lpips": float(metrics["lpips"]),
             "config": str(config_path),
         }
         return summary, train_renders, test_renders, test_truth
@@ -146,7 +147,7 @@ class Demo:
             if name in report:
                 r = report[name]
                 lines.append(
-                    f"{name:>8}: test PSNR {r['test_psnr_db']:.2f} dB, SSIM {r['test_ssim']:.3f} "
+                    f"{name:>8}: test PSNR {r['test_psnr_db']:.2f} dB, SSIM {r['test_ssim']:.3f}, LPIPS {r['test_lpips']:.3f} "
                     f"({r['train_steps']} steps in {r['train_seconds']:.0f} s, {r['gaussians']} Gaussians)"
                 )
         lines.append(f"wrote {self.out}/side_by_side.png, test_renders.png, report.json")
