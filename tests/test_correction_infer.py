@@ -20,7 +20,8 @@ from naka_gs_plugin.enhance.correction import (
 from naka_gs_plugin.enhance.correction_net import ChromaGuided, ChromaGuidedConfig
 from naka_gs_plugin.enhance.correction_train import half_resolution_maps
 from naka_gs_plugin.enhance.naka import naka_enhance
-from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer, scene_sigma
+from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
+from naka_gs_plugin.enhance.stages import scene_sigma
 
 SMALL = ChromaGuidedConfig(widths=(8, 8, 8, 8), enc_residual=(0, 0, 0))
 """Narrow and shallow: fast, yet the full U-Net topology (receptive radius 108 px)."""
@@ -250,7 +251,7 @@ def test_missing_weights_fail_clearly(tmp_path, monkeypatch):
     with pytest.raises(FileNotFoundError, match="nope.pt"):
         Enhancer(EnhanceConfig(correction=str(tmp_path / "nope.pt")))
     # The raw-image baseline never uses the network.
-    assert Enhancer(EnhanceConfig(method="none")).correction_key is None
+    assert Enhancer(EnhanceConfig(method="none")).correction is None
 
 
 def test_unknown_mode_rejected():
@@ -317,7 +318,7 @@ def test_training_on_cuda_runs_the_correction_there_in_exact_mode(tmp_path):
     ckpt = save_correction(_net(SMALL), tmp_path / "net.pt")
     on_gpu = Enhancer(EnhanceConfig(correction=str(ckpt)), device="cuda:0")
     assert (on_gpu.correction_mode, on_gpu.correction_device) == ("exact", torch.device("cuda:0"))
-    assert on_gpu.correction_key["mode"] == "exact"
+    assert on_gpu.correction.key()["mode"] == "exact" and on_gpu.correction.device == torch.device("cuda:0")
     lean = Enhancer(EnhanceConfig(correction=str(ckpt), correction_mode="lean-f32"), device="cuda:0")
     assert (lean.correction_mode, lean.correction_device) == ("lean-f32", torch.device("cpu"))
     on_cpu = Enhancer(EnhanceConfig(correction=str(ckpt)))

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 import naka_gs_plugin.data.lowlight_datamanager as dm_mod
-import naka_gs_plugin.enhance.pipeline as pipeline_mod
+import naka_gs_plugin.enhance.stages as stages_mod
 from naka_gs_plugin.data.images import read_rgb, read_stored
 from naka_gs_plugin.data.lowlight_datamanager import LowLightDatamanagerConfig, MissingGroundTruthError
 from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig
@@ -62,8 +62,8 @@ def test_cache_hit_on_second_run_and_miss_when_sigma_changes(toy_scene, monkeypa
     assert first.enhancer.last_run["computed"] == 8
 
     calls = []
-    real = pipeline_mod.naka_rushton
-    monkeypatch.setattr(pipeline_mod, "naka_rushton", lambda *a, **k: calls.append(1) or real(*a, **k))
+    real = stages_mod.naka_rushton
+    monkeypatch.setattr(stages_mod, "naka_rushton", lambda *a, **k: calls.append(1) or real(*a, **k))
     second = _dm(toy_scene, sigma=0.07)
     t0 = time.perf_counter()
     second.cached_train
@@ -74,6 +74,7 @@ def test_cache_hit_on_second_run_and_miss_when_sigma_changes(toy_scene, monkeypa
         "seconds": pytest.approx(second.enhancer.last_run["seconds"]),
         "naka_seconds": 0.0,
         "correction_seconds": 0.0,
+        "chroma_seconds": 0.0,
         "exposure_curve": "gain",
         "exposure_value": 1.0,
     }

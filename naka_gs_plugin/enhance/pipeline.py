@@ -1,9 +1,10 @@
-"""The enhancement pipeline applied to training images: Naka-Rushton, then the correction network.
+"""The enhancement applied to training images: a chain of stages (:mod:`naka_gs_plugin.enhance.stages`).
 
 One :class:`Enhancer` turns a scene's low-light training images into enhanced ones, once, with a
-rich progress bar, and keeps the results in an on-disk cache keyed by image content plus every
-parameter that changes the output, so a second run (or ``ns-eval``/``ns-viewer`` after training)
-does not recompute anything. Eval images never pass through here.
+rich progress bar: per view the Naka-Rushton response, the correction network and capture chroma,
+kept in an on-disk cache keyed by image content plus every cached stage's :meth:`~Stage.key`, so a
+second run (or ``ns-eval``/``ns-viewer`` after training) does not recompute anything; then the
+scene's exposure. Eval images never pass through here.
 
 Images in and out are sRGB-encoded, channel-last ``[H, W, 3]``; input ``uint8`` in [0, 255] or
 float in [0, 1]; output ``float32`` in [0, 1].
@@ -16,7 +17,7 @@ import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import List, Literal, Optional, Sequence, Type, Union
+from typing import Dict, List, Literal, Optional, Sequence, Type, Union
 
 import numpy as np
 import torch
@@ -28,18 +29,18 @@ from torch import Tensor
 from naka_gs_plugin.cpu import fit_threads
 from naka_gs_plugin.data.cache import content_hash, default_cache_dir
 from naka_gs_plugin.data.safe_io import atomic_write, usable_cache_dir
-from naka_gs_plugin.enhance.chroma import DEFAULT_BLUR, capture_chroma
-from naka_gs_plugin.enhance.correction import (
-    DEFAULT_MODE,
-    DEFAULT_WEIGHTS,
-    CorrectionRunner,
-    ModeName,
-    file_digest,
-    load_correction,
-    resolve_mode,
+from naka_gs_plugin.enhance.chroma import DEFAULT_BLUR
+from naka_gs_plugin.enhance.correction import DEFAULT_MODE, DEFAULT_WEIGHTS, ModeName, resolve_mode
+from naka_gs_plugin.enhance.exposure import METERED_TARGET, Curve, Metering
+from naka_gs_plugin.enhance.stages import (
+    CaptureChromaStage,
+    CorrectionStage,
+    ExposureStage,
+    NakaStage,
+    SceneStage,
+    ViewStage,
+    to_float01,
 )
-from naka_gs_plugin.enhance.exposure import METERED_TARGET, Curve, Metering, apply_curve, lift
-from naka_gs_plugin.enhance.naka import linear_stretch, naka_rushton, stretch_stats
 from naka_gs_plugin.progress import StageProgress
 
 CACHE_VERSION = 1
@@ -109,40 +110,6 @@ class EnhanceConfig(InstantiateConfig):
             return None
         return DEFAULT_WEIGHTS if self.correction == "default" else Path(self.correction)
 
-    def params(self) -> dict:
-        """Everything that changes the output (the cache key's parameter part; with ``sigma auto`` the
-        key's image part covers every view, as the value depends on all of them)."""
-        params = {
-            "version": CACHE_VERSION,
-            "method": self.method,
-            "sigma": self.sigma,
-            "n": self.n,
-            "stats": self.stats,
-        }
-        if self.chroma == "capture":
-            params["chroma_blur"] = self.chroma_blur
-        return params
-
-
-SIGMA_FLOOR = 1e-3
-"""Lower bound of ``sigma auto`` (an all-black scene must not divide by zero)."""
-
-
-def scene_sigma(images: Sequence[Tensor]) -> float:
-    """``sigma auto``: the mean sRGB [0, 1] value over every pixel and channel of ``images`` (views may
-    differ in size; each pixel weighs the same), at least :data:`SIGMA_FLOOR`."""
-    total = sum(float(to_float01(im).sum(dtype=torch.float64)) for im in images)
-    count = sum(to_float01(im).numel() for im in images)
-    return max(SIGMA_FLOOR, total / max(count, 1))
-
-
-def to_float01(image: Tensor) -> Float[Tensor, "H W 3"]:
-    """``uint8`` [0, 255] or float [0, 1] -> ``float32`` [0, 1]; only the first 3 channels (RGB)."""
-    image = image[..., :3]
-    if image.dtype == torch.uint8:
-        return image.float() / 255.0
-    return image.float()
-
 
 class Enhancer:
     """Applies the configured enhancement to a scene's training images, with a disk cache."""
@@ -192,34 +159,47 @@ class Enhancer:
         on_cuda = torch.device(device).type == "cuda"
         self.correction_device = torch.device(device if on_cuda and self.correction_mode == "exact" else "cpu")
         """Where the correction network runs (only ``exact`` runs on a GPU); images are enhanced on the CPU."""
-        self.correction_key: Optional[dict] = None
-        """The correction's part of the cache key: weights file hash and inference mode."""
-        if self.correction_path is not None:
-            if not self.correction_path.is_file():
-                hint = (
-                    "the shipped default weights are missing from this install"
-                    if config.correction == "default"
-                    else "no such file"
+        if self.correction_path is not None and not self.correction_path.is_file():
+            hint = (
+                "the shipped default weights are missing from this install"
+                if config.correction == "default"
+                else "no such file"
+            )
+            raise FileNotFoundError(
+                f"[naka-gs] correction weights {self.correction_path} not found ({hint}): pass "
+                "--pipeline.datamanager.enhance.correction none (Naka only) or the path of a checkpoint"
+            )
+        self.view_stages: List[ViewStage] = []
+        """Applied to each view, in order, before the cache."""
+        self.scene_stages: List[SceneStage] = []
+        """Applied to the whole scene's views, in order, after the cache."""
+        self.correction: Optional[CorrectionStage] = None
+        if config.method == "naka":
+            self.view_stages.append(NakaStage(sigma=config.sigma, n=config.n, stats=config.stats))
+            if self.correction_path is not None:
+                self.correction = CorrectionStage.from_file(
+                    self.correction_path, self.correction_mode, self.correction_device
                 )
-                raise FileNotFoundError(
-                    f"[naka-gs] correction weights {self.correction_path} not found ({hint}): pass "
-                    "--pipeline.datamanager.enhance.correction none (Naka only) or the path of a checkpoint"
+                self.view_stages.append(self.correction)
+            if config.chroma == "capture":
+                self.view_stages.append(CaptureChromaStage(blur=config.chroma_blur))
+            if config.exposure != "none":
+                self.scene_stages.append(
+                    ExposureStage(
+                        target=config.exposure, curve=config.exposure_curve, metering=config.exposure_metering
+                    )
                 )
-            self.correction_key = {"weights_sha1": file_digest(self.correction_path), "mode": self.correction_mode}
-        self._runner: Optional[CorrectionRunner] = None
 
-    def runner(self) -> Optional[CorrectionRunner]:
-        """The correction network (loaded on first use), or ``None`` without correction."""
-        if self._runner is None and self.correction_path is not None:
-            net = load_correction(self.correction_path).to(self.correction_device)
-            self._runner = CorrectionRunner(net, self.correction_mode)
-        return self._runner
+    def key(self) -> str:
+        """The parameter part of the cache key: every cached stage's :meth:`~Stage.key`, as JSON."""
+        stages = [stage.key() for stage in self.view_stages]
+        return json.dumps({"version": CACHE_VERSION, "stages": stages}, sort_keys=True, default=str)
 
     def _keys(self, images: Sequence[Tensor]) -> List[str]:
         hashes = [content_hash(im) for im in images]
-        params = json.dumps({**self.config.params(), "correction": self.correction_key}, sort_keys=True)
+        params = self.key()
         scene = ""
-        if self.config.stats == "scene" or self.config.sigma == "auto":
+        if any(stage.scene_wide() for stage in self.view_stages):
             # Each view's output depends on every view: the key covers the whole set.
             scene = hashlib.sha1("".join(sorted(hashes)).encode()).hexdigest()
         return [hashlib.sha1(f"{params}|{h}|{scene}".encode()).hexdigest() for h in hashes]
@@ -265,76 +245,52 @@ class Enhancer:
         ``images`` are one scene: the exposure curve (and ``sigma auto``, ``stats scene``) is computed over
         all of them."""
         start = time.perf_counter()
-        if self.config.method == "none":
+        if not self.view_stages:
             self.last_run = {"computed": 0, "cached": 0, "seconds": 0.0}
             return [to_float01(im) for im in images]
         keys = self._keys(images)
         out: List[Optional[Tensor]] = [self._read(k, im) for k, im in zip(keys, images)]
         todo = [i for i, o in enumerate(out) if o is None]
-        naka_s = correction_s = 0.0
+        seconds: Dict[str, float] = {stage.name: 0.0 for stage in self.view_stages}
         if todo:
-            lo_scene = hi_scene = None
-            sigma = scene_sigma(images) if self.config.sigma == "auto" else self.config.sigma
-            if self.config.stats == "scene":
-                # The pooled statistics need every view, cached or not.
-                lo_scene, hi_scene = self._scene_stats(images, sigma)
-            runner = self.runner()
-            correction = f", correction {self.config.correction} ({self.correction_mode})" if runner else ""
+            for stage in self.view_stages:
+                stage.prepare(images)  # scene statistics read every view, cached or not
+            chain = "; ".join(stage.describe() for stage in self.view_stages)
             with StageProgress() as progress:
-                task = progress.add_task(
-                    f"{description} ({self.config.method}, sigma {sigma:.4g}, {self.config.stats} stats{correction})",
-                    total=len(todo),
-                )
+                task = progress.add_task(f"{description} ({chain})", total=len(todo))
                 for i in todo:
-                    t = time.perf_counter()
-                    low = to_float01(images[i])
-                    response = naka_rushton(low, sigma, self.config.n)
-                    lo, hi = stretch_stats(response)
-                    if lo_scene is not None:
-                        lo, hi = lo_scene, hi_scene
-                    enhanced = linear_stretch(response, lo, hi)
-                    naka_s += time.perf_counter() - t
-                    if runner is not None:
+                    low = enhanced = to_float01(images[i])
+                    for stage in self.view_stages:
                         t = time.perf_counter()
-                        pair = [x.permute(2, 0, 1)[None].to(self.correction_device) for x in (low, enhanced)]
-                        enhanced = runner(*pair)["enhanced"][0].permute(1, 2, 0).cpu()
-                        correction_s += time.perf_counter() - t
-                    if self.config.chroma == "capture":
-                        enhanced = capture_chroma(enhanced, low, self.config.chroma_blur)
+                        enhanced = stage.apply(enhanced, low)
+                        seconds[stage.name] += time.perf_counter() - t
                     # Round to the cache's 16-bit grid so a run is identical with a cold or warm cache.
                     out[i] = (enhanced * 65535.0).round() / 65535.0
                     self._write(keys[i], out[i])
                     progress.advance(task)
         done = [o for o in out if o is not None]
-        curve, value = self.config.exposure_curve, 1.0
-        if self.config.exposure != "none":
-            value = lift(done, curve, float(self.config.exposure), self.config.exposure_metering)
-        if value != 1.0:
-            done = [(im * 65535.0).round() / 65535.0 for im in apply_curve(done, curve, value)]
-        seconds = time.perf_counter() - start
+        for stage in self.scene_stages:
+            done = [(im * 65535.0).round() / 65535.0 for im in stage.apply_all(done)]
+        exposure = next((stage for stage in self.scene_stages if isinstance(stage, ExposureStage)), None)
+        value = exposure.value if exposure is not None else 1.0
+        total = time.perf_counter() - start
         self.last_run = {
             "computed": len(todo),
             "cached": len(images) - len(todo),
-            "seconds": seconds,
-            "naka_seconds": naka_s,
-            "correction_seconds": correction_s,
-            "exposure_curve": curve,
+            "seconds": total,
+            **{f"{name}_seconds": s for name, s in seconds.items()},
+            "exposure_curve": self.config.exposure_curve,
             "exposure_value": value,
         }
         CONSOLE.log(
             f"[naka-gs] {description}: {len(images)} images, {len(todo)} computed, "
-            f"{len(images) - len(todo)} from cache ({self.cache_dir or 'cache off'}) in {seconds:.2f} s"
+            f"{len(images) - len(todo)} from cache ({self.cache_dir or 'cache off'}) in {total:.2f} s"
             + (
-                f", exposure lifted to {self.config.exposure} ({self.config.exposure_metering} metering, "
-                f"{'gain' if curve == 'gain' else 'gamma'} {value:.3f})"
+                f", exposure lifted to {exposure.target} ({exposure.metering} metering, "
+                f"{'gain' if exposure.curve == 'gain' else 'gamma'} {value:.3f})"
                 if value != 1.0
                 else ""
             ),
             markup=False,
         )
         return done
-
-    def _scene_stats(self, images: Sequence[Tensor], sigma: float) -> tuple[Tensor, Tensor]:
-        """Pooled min/max of the Naka response over all views (views may differ in size)."""
-        los, his = zip(*(stretch_stats(naka_rushton(to_float01(im), sigma, self.config.n)) for im in images))
-        return torch.stack(los).amin(), torch.stack(his).amax()

@@ -272,7 +272,11 @@ class ProcessData:
                 "seconds": seconds,
                 "args": {k: str(v) if isinstance(v, Path) else v for k, v in asdict(self).items() if k != "enhance"},
                 "enhance": {
-                    **self.enhance.params(),
+                    **{
+                        k: str(v) if isinstance(v, Path) else v
+                        for k, v in asdict(self.enhance).items()
+                        if k != "_target"
+                    },
                     "correction": None if correction is None else str(correction),
                 },
             }

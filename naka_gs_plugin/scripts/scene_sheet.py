@@ -24,7 +24,7 @@ from naka_gs_plugin.bench.scene_sheet import (
     sheet_views,
     trained_pose,
 )
-from naka_gs_plugin.enhance.pipeline import to_float01
+from naka_gs_plugin.enhance.stages import to_float01
 from naka_gs_plugin.sheet import contact_sheet
 
 

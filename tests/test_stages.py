@@ -1,0 +1,88 @@
+"""The enhancement chain: stages built from the config, and a cache key derived from every stage's fields."""
+
+import dataclasses
+import shutil
+
+import pytest
+import torch
+
+from naka_gs_plugin.enhance.checkpoint import save_correction
+from naka_gs_plugin.enhance.chroma import capture_chroma
+from naka_gs_plugin.enhance.correction_net import ChromaGuided, ChromaGuidedConfig
+from naka_gs_plugin.enhance.naka import naka_enhance
+from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
+from naka_gs_plugin.enhance.stages import CaptureChromaStage, CorrectionStage, ExposureStage, NakaStage
+
+SMALL = ChromaGuidedConfig(widths=(8, 8, 8, 8), enc_residual=(0, 0, 0))
+
+
+def _images(n=2):
+    g = torch.Generator().manual_seed(0)
+    return [(torch.rand(24, 32, 3, generator=g) * 40).to(torch.uint8) for _ in range(n)]
+
+
+def _key(**options):
+    return Enhancer(EnhanceConfig(correction="none", **options)).key()
+
+
+def test_the_config_builds_the_chain_in_order(tmp_path):
+    ckpt = save_correction(ChromaGuided(SMALL), tmp_path / "net.pt")
+    enhancer = Enhancer(EnhanceConfig(correction=str(ckpt), correction_mode="exact"))
+    assert [type(s) for s in enhancer.view_stages] == [NakaStage, CorrectionStage, CaptureChromaStage]
+    assert [type(s) for s in enhancer.scene_stages] == [ExposureStage]
+    assert [type(s) for s in Enhancer(EnhanceConfig(correction="none", chroma="network")).view_stages] == [NakaStage]
+    assert Enhancer(EnhanceConfig(method="none")).view_stages == []
+
+
+def test_a_new_stage_option_enters_the_cache_key_by_itself():
+    @dataclasses.dataclass
+    class NakaWithDummy(NakaStage):
+        dummy: float = 0.0
+
+    assert NakaWithDummy(dummy=0.0).key() != NakaWithDummy(dummy=1.0).key()
+    enhancer = Enhancer(EnhanceConfig(correction="none", chroma="network"))
+    before = enhancer._keys(_images())
+    enhancer.view_stages[0] = NakaWithDummy(dummy=1.0)
+    assert enhancer._keys(_images()) != before
+
+
+@pytest.mark.parametrize(
+    "option, value",
+    [("sigma", 0.07), ("sigma", "auto"), ("n", 0.8), ("stats", "scene"), ("chroma", "network"), ("chroma_blur", 5.0)],
+)
+def test_every_option_that_changes_the_cached_views_changes_the_key(option, value):
+    assert _key(**{option: value}) != _key()
+
+
+@pytest.mark.parametrize("option, value", [("exposure", 0.3), ("exposure", "none"), ("use_cache", False)])
+def test_options_applied_after_the_cache_leave_the_key_alone(option, value):
+    assert _key(**{option: value}) == _key()
+
+
+def test_the_blur_is_keyed_only_when_capture_chroma_reads_it():
+    assert _key(chroma="network", chroma_blur=5.0) == _key(chroma="network")
+
+
+def test_correction_is_keyed_by_weights_content_and_mode_not_path(tmp_path):
+    ckpt = save_correction(ChromaGuided(SMALL), tmp_path / "net.pt")
+    copy = tmp_path / "elsewhere" / "net.pt"
+    copy.parent.mkdir()
+    shutil.copyfile(ckpt, copy)
+    a = CorrectionStage.from_file(ckpt, "exact", torch.device("cpu"))
+    b = CorrectionStage.from_file(copy, "exact", torch.device("cpu"))
+    assert a.key() == b.key() and "path" not in a.key() and "device" not in a.key()
+    assert a.key() != CorrectionStage.from_file(ckpt, "lean-f32", torch.device("cpu")).key()
+
+
+def test_the_chain_composes_naka_and_capture_chroma():
+    images = _images()
+    out = Enhancer(EnhanceConfig(correction="none", exposure="none", use_cache=False)).enhance_images(images)
+    for got, image in zip(out, images):
+        low = image.float() / 255
+        torch.testing.assert_close(got, capture_chroma(naka_enhance(low), low), atol=1e-4, rtol=0)
+
+
+def test_stages_report_their_own_time():
+    enhancer = Enhancer(EnhanceConfig(correction="none", use_cache=False))
+    enhancer.enhance_images(_images())
+    assert enhancer.last_run["naka_seconds"] > 0 and enhancer.last_run["chroma_seconds"] > 0
