@@ -3,15 +3,18 @@
 import json
 import shutil
 import time
+from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
+from PIL import Image
 
 import naka_gs_plugin.data.lowlight_datamanager as dm_mod
 import naka_gs_plugin.enhance.stages as stages_mod
 from naka_gs_plugin.data.images import read_rgb, read_stored
 from naka_gs_plugin.data.lowlight_datamanager import LowLightDatamanagerConfig, MissingGroundTruthError
-from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig
+from naka_gs_plugin.data.lowlight_dataparser import LowLightDataError, LowLightDataParserConfig
 from naka_gs_plugin.enhance.chroma import capture_chroma
 from naka_gs_plugin.enhance.naka import naka_enhance
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig
@@ -144,3 +147,48 @@ def test_enhance_cli_fills_the_training_cache(toy_scene, tmp_path):
     assert dm.train_dataset.cameras.distortion_params.abs().sum() > 0
     dm.cached_train
     assert dm.enhancer.last_run["computed"] == 0 and dm.enhancer.last_run["cached"] == 8
+
+
+def test_enhance_cli_scores_against_references_of_the_training_views(toy_scene, tmp_path):
+    """A scene with ``transforms_reference.json`` is scored: its own output as reference is a perfect score,
+    a red-tinted one shows as missing red in the chromaticity."""
+    scene = tmp_path / "scene"
+    shutil.copytree(toy_scene, scene)
+    first = Enhance(scene=scene, out=tmp_path / "first", sheet=False, reference="none").main()
+    assert not (tmp_path / "first" / "scores.json").exists()
+    (scene / "reference").mkdir()
+    meta = json.loads((scene / "transforms_train.json").read_text())
+    for frame, png in zip(meta["frames"], first):
+        image = read_rgb(png)
+        image[..., 0] = (image[..., 0] * 1.3).clip(0, 1)  # references redder than the enhancement
+        name = f"{Path(frame['file_path']).stem}.png"
+        Image.fromarray((image * 255 + 0.5).astype(np.uint8)).save(scene / "reference" / name)
+        frame["file_path"] = f"reference/{name}"
+    (scene / "transforms_reference.json").write_text(json.dumps(meta))
+
+    Enhance(scene=scene, out=tmp_path / "scored", sheet=False).main()
+    scores = json.loads((tmp_path / "scored" / "scores.json").read_text())
+    assert scores["n_views"] == 8 and len(scores["per_view"]) == 8
+    m = scores["means"]
+    assert m["chroma_r"] < -0.01 and m["chroma_g"] > 0 and m["chroma_b"] > 0 and m["luma_ratio"] < 1.0
+    assert m["chroma_l1"] == pytest.approx(2 * -m["chroma_r"], abs=1e-6)  # fractions sum to 1
+    assert 0.0 < m["lpips"] < 0.5 and 10.0 < m["psnr"] < 60.0 and 0.0 < m["ssim"] <= 1.0
+
+    (scene / "reference" / f"{Path(meta['frames'][0]['file_path']).stem}.png").rename(scene / "elsewhere.png")
+    meta["frames"] = meta["frames"][1:]
+    (scene / "transforms_reference.json").write_text(json.dumps(meta))
+    with pytest.raises(LowLightDataError, match="no reference for training view"):
+        Enhance(scene=scene, out=tmp_path / "again", sheet=False).main()
+
+
+def test_colour_error_of_identical_images_is_zero():
+    from naka_gs_plugin.metrics import colour_error, colour_stats
+
+    g = torch.Generator().manual_seed(1)
+    image = torch.rand(16, 16, 3, generator=g)
+    chroma, luma = colour_stats(image)
+    assert float(chroma.sum()) == pytest.approx(1.0) and luma > 0
+    err = colour_error(image, image)
+    assert err["chroma_l1"] == 0.0 and err["luma_ratio"] == pytest.approx(1.0)
+    grey = torch.full((4, 4, 3), 0.5)
+    torch.testing.assert_close(colour_stats(grey)[0], torch.full((3,), 1 / 3))

@@ -7,6 +7,11 @@ downscaling and undistortion as ``ns-train naka-gs``), enhances them with its
 the same options reads every image from the cache, and writes 8-bit PNGs plus an optional contact
 sheet. Prints the throughput in images per second.
 
+A scene with normal-light photos of its training views (``transforms_reference.json``, as RealX3D's
+validation scene BlueHawaii has) is also scored against them (``--reference``): PSNR, SSIM and LPIPS
+per view, and the colour error in linear light (:func:`naka_gs_plugin.metrics.colour_error`), written
+to ``scores.json`` and printed.
+
 The output folder is built next to --out and moved into place when complete; --out may not be,
 contain or lie inside a folder of input images, and an existing non-empty --out is replaced only
 if it holds nothing but an earlier naka-gs-enhance output. Errors print one line (exit status 2).
@@ -15,12 +20,13 @@ if it holds nothing but an earlier naka-gs-enhance output. Errors print one line
 from __future__ import annotations
 
 import dataclasses
+import json
 import shutil
 import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import List, Optional, Sequence
+from typing import Dict, List, Optional, Sequence
 
 import numpy as np
 import torch
@@ -28,7 +34,7 @@ import tyro
 from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 
-from naka_gs_plugin.data.images import ImageReadError
+from naka_gs_plugin.data.images import ImageReadError, read_rgb
 from naka_gs_plugin.data.lowlight_datamanager import LowLightDatamanagerConfig
 from naka_gs_plugin.data.lowlight_dataparser import LowLightDataError, LowLightDataParserConfig, read_split
 from naka_gs_plugin.data.safe_io import (
@@ -57,6 +63,10 @@ class Enhance:
     """Also write before_after.png for up to ``sheet_views`` views (rows: input, enhanced; with the
     correction network: input, Naka only, corrected)."""
     sheet_views: int = 4
+    reference: str = "auto"
+    """Score the enhanced views against normal-light photos of the same views (matched by file name):
+    ``auto`` = the scene's ``transforms_reference.json`` when it has one, ``none`` = never, or the name of
+    another transforms json in the scene."""
 
     def main(self) -> List[Path]:
         """Write the enhanced PNGs (and sheet) to ``out``; returns their final paths."""
@@ -82,14 +92,32 @@ class Enhance:
         start = time.perf_counter()
         enhanced = datamanager.enhancer.enhance_images(images, description=f"Enhancing {self.scene.name}")
         seconds = time.perf_counter() - start
+        references = self._references(originals)
+        scores = None if references is None else score_against(enhanced, references, [p.name for p in originals])
         out = self.out.resolve()
         stage = staging_dir(out)
         try:
+            if scores is not None:
+                (stage / "scores.json").write_text(json.dumps(scores, indent=1))
             self._write(stage, names, images, enhanced, seconds)
             publish_dir(stage, out, "naka-gs-enhance", "--out", None)
         finally:
             shutil.rmtree(stage, ignore_errors=True)  # our own staging folder; gone already once published
         return [self.out / name for name in names]
+
+    def _references(self, originals: List[Path]) -> Optional[List[Path]]:
+        """The normal-light photo of each training view (same file stem), or None when not scoring."""
+        name = "transforms_reference.json" if self.reference == "auto" else self.reference
+        if self.reference == "none" or (self.reference == "auto" and not (self.scene / name).is_file()):
+            return None
+        by_stem = {p.stem: p for p in read_split(self.scene, name).images}
+        missing = [p.name for p in originals if p.stem not in by_stem]
+        if missing:
+            raise LowLightDataError(
+                f"{self.scene / name}: no reference for training view(s) {', '.join(missing[:3])} -- list a photo "
+                "with the same file name for every training view, or pass --reference none"
+            )
+        return [by_stem[p.stem] for p in originals]
 
     def _write(
         self, stage: Path, names: List[str], images: List[torch.Tensor], enhanced: List[torch.Tensor], seconds: float
@@ -113,6 +141,47 @@ class Enhance:
             sheet = contact_sheet(rows)
             Image.fromarray(sheet).save(stage / "before_after.png")
             CONSOLE.log(f"[naka-gs] sheet: {self.out / 'before_after.png'}", markup=False)
+
+
+def score_against(
+    enhanced: Sequence[torch.Tensor], references: Sequence[Path], names: Sequence[str]
+) -> Dict[str, object]:
+    """PSNR, SSIM, LPIPS and colour error of each enhanced view (sRGB [0, 1], ``[H, W, 3]``) against its
+    normal-light photo (resized to the view's size by area averaging, as the dataparser downscales), and
+    their means; prints the means."""
+    import cv2
+    import kornia
+
+    from naka_gs_plugin.metrics import colour_error, psnr
+    from naka_gs_plugin.model.lpips import LazyLPIPS
+
+    lpips = LazyLPIPS()
+    rows = []
+    for name, image, path in zip(names, enhanced, references):
+        ref = read_rgb(path)
+        h, w = image.shape[:2]
+        if ref.shape[:2] != (h, w):
+            ref = cv2.resize(ref, (w, h), interpolation=cv2.INTER_AREA)
+        ref_t = torch.from_numpy(ref)
+        a, b = image.permute(2, 0, 1)[None].clamp(0, 1), ref_t.permute(2, 0, 1)[None]
+        rows.append(
+            {
+                "view": name,
+                "psnr": psnr(a, b),
+                "ssim": float(kornia.metrics.ssim(a, b, 11).mean()),
+                "lpips": float(lpips(a, b)),
+                **colour_error(image, ref_t),
+            }
+        )
+    keys = [k for k in rows[0] if k != "view"]
+    means = {k: float(np.mean([r[k] for r in rows])) for k in keys}
+    CONSOLE.log(
+        f"[naka-gs] against {len(rows)} normal-light references: PSNR {means['psnr']:.2f} dB, SSIM {means['ssim']:.3f}, "
+        f"LPIPS {means['lpips']:.3f}, chromaticity L1 {means['chroma_l1']:.3f} (r {means['chroma_r']:+.3f}, "
+        f"g {means['chroma_g']:+.3f}, b {means['chroma_b']:+.3f}), luminance x{means['luma_ratio']:.2f}",
+        markup=False,
+    )
+    return {"n_views": len(rows), "means": means, "per_view": rows}
 
 
 def entrypoint(args: Optional[Sequence[str]] = None) -> None:
