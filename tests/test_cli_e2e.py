@@ -27,6 +27,8 @@ from typing import Dict, List, Optional
 import pytest
 import torch
 
+pytestmark = pytest.mark.slow  # every test here runs ns-* commands in subprocesses
+
 BIN = Path(sys.executable).parent
 NUM_RANDOM = 2000
 TRAIN_STEPS = 30

@@ -69,6 +69,16 @@ def test_lazy_metric_builds_on_first_call_and_follows_the_device():
     assert metric._metric is not None and next(metric._metric.parameters()).device.type == "cpu"
 
 
+def test_building_and_calling_the_metric_leaves_the_random_state_alone():
+    """Evaluation during training must not change the training that follows (densification draws random numbers)."""
+    torch.manual_seed(3)
+    before = torch.get_rng_state()
+    metric = LazyLPIPS()
+    x = torch.rand(1, 3, 32, 32, generator=torch.Generator().manual_seed(0))
+    metric(x, x.flip(-1))
+    assert torch.equal(torch.get_rng_state(), before)
+
+
 def test_weights_file_errors_are_one_line_naming_the_file(tmp_path):
     missing = tmp_path / "nope.pth"
     garbage = tmp_path / "garbage.pth"

@@ -454,6 +454,7 @@ def test_triangulation_gets_enhanced_views_and_opencv_poses_of_the_training_fram
     assert pipe.model.num_points == 2 * len(c2w) and "alignment" not in pipe.seeding.summary
 
 
+@pytest.mark.slow  # ns-train in a subprocess
 def test_ns_train_seeded_from_simulator_points(tmp_path):
     """A real ``ns-train naka-gs`` (20 steps) seeded from the simulator's points.ply via ``auto``."""
     from naka_gs_plugin.sim.generate import generate

@@ -89,6 +89,7 @@ def test_sparse_points_share_the_frame_of_the_transforms(processed):
         assert np.allclose(frames[f"images/{image.name}"][:3, 3], image.projection_center(), atol=1e-9)
 
 
+@pytest.mark.slow  # ns-train in a subprocess
 def test_scene_parses_and_trains_30_steps(processed, tmp_path):
     scene, _ = processed
     outputs = LowLightDataParserConfig(data=scene).setup().get_dataparser_outputs("train")

@@ -143,6 +143,7 @@ def test_method_config_targets_the_safe_trainer_and_survives_config_yml():
 
 
 # ------------------------------------------------------------------------------------- 1. Ctrl-C
+@pytest.mark.slow  # ns-train in a subprocess (the interrupted fixture)
 def test_ctrl_c_saves_the_current_step_and_exits_130(interrupted):
     assert interrupted.rc == INTERRUPTED_EXIT_CODE, interrupted.log[-4000:]
     saved = [re.fullmatch(r"naka-gs: interrupted; step (\d+) saved to (\S+) \(resume with --load-dir (\S+)\)", line)
@@ -206,6 +207,7 @@ def test_write_killed_before_publishing_is_ignored_by_resume_and_by_ns_eval(tmp_
 
 
 # ------------------------------------------------------------------------------------- 3. corrupt resume
+@pytest.mark.slow  # ns-train in a subprocess (the interrupted fixture)
 def test_resume_skips_a_truncated_latest_checkpoint(interrupted, toy_scene, tmp_path):
     valid = min(interrupted.ckpt_dir.glob("step-*.ckpt"))
     step = checkpoint_step(valid)
@@ -224,6 +226,7 @@ def test_resume_skips_a_truncated_latest_checkpoint(interrupted, toy_scene, tmp_
     assert [p.name for p in resumed.glob("step-*.ckpt")] == [f"step-{step + 1:09d}.ckpt"], res.stdout[-4000:]
 
 
+@pytest.mark.slow  # ns-train in a subprocess (the interrupted fixture)
 def test_load_checkpoint_falls_back_past_a_damaged_file(interrupted, tmp_path, capsys):
     valid = min(interrupted.ckpt_dir.glob("step-*.ckpt"))
     folder = tmp_path / "models"
@@ -237,6 +240,7 @@ def test_load_checkpoint_falls_back_past_a_damaged_file(interrupted, tmp_path, c
     assert f"skipping corrupt or truncated {damaged.name} in {folder}; resuming from step-000000001.ckpt" in out
 
 
+@pytest.mark.slow  # ns-train in a subprocess (the interrupted fixture)
 def test_no_valid_checkpoint_is_one_line_naming_the_folder_and_the_fix(interrupted, tmp_path):
     valid = min(interrupted.ckpt_dir.glob("step-*.ckpt"))
     folder = tmp_path / "models"

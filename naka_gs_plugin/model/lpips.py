@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from importlib.resources import files
 from pathlib import Path
-from typing import Dict, Optional
+from typing import Optional
 
 import torch
 import torchvision
@@ -67,19 +67,17 @@ class LPIPS(nn.Module):
         return total[:, 0]
 
 
-def _expected() -> Dict[str, torch.Size]:
-    model = LPIPS()
-    return {k: v.shape for k, v in model.state_dict().items()}
-
-
 def load_lpips(weights: Optional[Path] = None) -> LPIPS:
     """The metric with the shipped weights, or with the AlexNet backbone of ``weights``.
 
     ``weights``: our ``lpips_alex.pt`` format, or torchvision's ``alexnet-owt-7be5be79.pth`` (its
     ``features.*`` tensors; the linear layers then come from the shipped file). Raises ``ValueError``
-    with one line naming the file when it is unreadable or is not AlexNet's weights.
+    with one line naming the file when it is unreadable or is not AlexNet's weights. Leaves torch's
+    random state as it found it (the layers' random initialisation is overwritten anyway), so that
+    evaluating during training never changes the training that follows.
     """
-    model = LPIPS()
+    with torch.random.fork_rng(devices=[]):
+        model = LPIPS()
     state = torch.load(SHIPPED, map_location="cpu", weights_only=True)
     if weights is not None:
         path = Path(weights)
@@ -90,7 +88,7 @@ def load_lpips(weights: Optional[Path] = None) -> LPIPS:
             raise ValueError(f"{path}: LPIPS weights file not found -- {fix}") from None
         except Exception as err:  # truncated zip, pickle with code, not a torch file at all
             raise ValueError(f"{path}: not a readable torch weights file ({err.__class__.__name__}) -- {fix}") from None
-        expected = _expected()
+        expected = {k: v.shape for k, v in model.state_dict().items()}
         backbone = [f"features.{i}.{p}" for i in CONVS for p in ("weight", "bias")]
         if not isinstance(given, dict) or not all(
             isinstance(given.get(k), Tensor) and given[k].shape == expected[k] for k in backbone
