@@ -7,9 +7,6 @@ import torch
 
 from naka_gs_plugin.sim.toy_scene import ToySceneConfig, write_toy_scene
 
-SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-SHARED_REFERENCE = Path(__file__).resolve().parents[2] / "shared" / "reference"
-
 
 @pytest.fixture(autouse=True)
 def _isolated_cache(tmp_path, monkeypatch):

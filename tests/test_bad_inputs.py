@@ -30,7 +30,7 @@ from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
 from naka_gs_plugin.scripts import enhance as enhance_cli
 from naka_gs_plugin.scripts import sim as sim_cli
 from naka_gs_plugin.scripts.process_data import ProcessData, ProcessDataError
-from tests.test_sim import write_spec
+from tests.helpers import write_spec
 
 NAKA = EnhanceConfig(correction="none")
 Action = Callable[[], object]
@@ -558,7 +558,7 @@ def _fresh_scene(env, out):
 
 def raster_absurd_focal_and_nan_means(env):
     from naka_gs_plugin.model.rasterize_cpu_fast import rasterization
-    from tests.test_rasterize_cpu_fast import make_scene
+    from tests.helpers import make_scene
 
     scene = make_scene(200, 64, 48)
     scene["Ks"][:, 0, 0] = scene["Ks"][:, 1, 1] = 1e10

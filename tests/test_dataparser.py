@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from naka_gs_plugin.data.lowlight_dataparser import LowLightDataError, LowLightDataParserConfig, auto_downscale
-from tests.conftest import SHARED_DATA
+from tests.helpers import SHARED_DATA
 
 REALX3D = sorted(p for p in (SHARED_DATA / "realx3d").glob("*") if p.is_dir())
 LOM = sorted(p for p in (SHARED_DATA / "lom").glob("*") if p.is_dir())

@@ -13,7 +13,7 @@ from torchmetrics.functional.image.lpips import _NoTrainLpips
 
 from naka_gs_plugin.data.images import read_rgb
 from naka_gs_plugin.model.lpips import CONVS, SHIPPED, LazyLPIPS, load_lpips
-from tests.conftest import SHARED_REFERENCE
+from tests.helpers import SHARED_REFERENCE
 
 PAIR = SHARED_REFERENCE / "lpips"
 CONVERTER = Path(__file__).resolve().parents[1] / "scripts" / "convert_lpips_weights.py"

@@ -34,8 +34,9 @@ from naka_gs_plugin.points.sources import (
 )
 from naka_gs_plugin.scripts.ppm import Ppm, entrypoint
 from naka_gs_plugin.sim.views import look_at
+from tests.helpers import SHARED_DATA
 
-LOM = Path(__file__).resolve().parents[2] / "shared" / "data" / "lom"
+LOM = SHARED_DATA / "lom"
 BIN = Path(sys.executable).parent
 
 

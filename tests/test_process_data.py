@@ -23,7 +23,7 @@ from naka_gs_plugin.enhance.pipeline import EnhanceConfig
 from naka_gs_plugin.points.align import match_names
 from naka_gs_plugin.points.sfm import compare_poses
 from naka_gs_plugin.scripts.process_data import ProcessData, ProcessDataError, TooFewRegisteredError
-from tests.test_sfm import dark_capture
+from tests.helpers import dark_capture
 
 N_VIEWS = 16
 NAKA = EnhanceConfig(use_cache=False, correction="none")  # Naka only: fast, and independent of shipped weights

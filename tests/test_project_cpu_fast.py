@@ -8,7 +8,7 @@ import torch
 
 from naka_gs_plugin.model import project_cpu_fast as fast
 from naka_gs_plugin.model import projection as ref
-from tests.test_rasterize_cpu_fast import make_scene
+from tests.helpers import make_scene
 
 F32, F64 = torch.float32, torch.float64
 

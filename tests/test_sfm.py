@@ -20,29 +20,10 @@ from scipy.spatial import cKDTree
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
 from naka_gs_plugin.points.align import apply_sim3, match_names, umeyama
 from naka_gs_plugin.points.sfm import SfMError, triangulate_known_poses
-from naka_gs_plugin.sim.generate import generate
-from naka_gs_plugin.sim.spec import parse_spec
-from tests.conftest import SHARED_DATA
+from tests.helpers import SHARED_DATA, dark_capture
 
 SOFA = SHARED_DATA / "lom" / "sofa"
 GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
-
-
-def dark_capture(out: Path, n_train: int, downscale: int = 2, scene: str = "sofa") -> Path:
-    """LOM ``scene`` views darkened like a real low-light capture (8-bit sRGB JPEG, noise)."""
-    path = SHARED_DATA / "lom" / scene
-    spec = {
-        "name": f"{scene}-dark",
-        "source": {"capture": {"path": str(path), "n_train": n_train, "n_test": 2, "downscale": downscale}},
-        "effects": [
-            {"exposure": {"factor": 0.012}},
-            {"noise": {"shot_gain": 5e-5, "read_std": 4e-4}},
-            {"response": {"curve": "srgb"}},
-            {"quantize": {}},
-            {"jpeg": {"quality": 90}},
-        ],
-    }
-    return generate(parse_spec(spec, out / "spec.yaml"), out / "scene", seed=0)
 
 
 @pytest.fixture(scope="module")

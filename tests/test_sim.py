@@ -10,7 +10,6 @@ import numpy as np
 import open3d as o3d
 import pytest
 import torch
-import yaml
 
 from naka_gs_plugin.data.images import read_rgb
 from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig
@@ -19,17 +18,11 @@ from naka_gs_plugin.sim import stats
 from naka_gs_plugin.sim.effects import sensor
 from naka_gs_plugin.sim.generate import build_scene, generate
 from naka_gs_plugin.sim.spec import Noise, SimSpecError, load_spec, shipped_specs
+from tests.helpers import TINY_VIEWS, write_spec
 
 REPO = Path(__file__).resolve().parents[1]
-TINY = {"n_train": 3, "n_test": 1, "width": 48, "height": 36, "spacing": 0.3}
+TINY = TINY_VIEWS
 U16 = 1.0 / 65535.0
-
-
-def write_spec(tmp_path: Path, effects: list, name: str = "s", source: dict | None = None, **top) -> Path:
-    source = source or {"procedural": {**TINY, "points": {"n_points": 500, "n_clusters": 1, "cluster_size": 50}}}
-    path = tmp_path / f"{name}.yaml"
-    path.write_text(yaml.safe_dump({"name": name, "source": source, "effects": effects, **top}))
-    return path
 
 
 def make(tmp_path: Path, effects: list, name: str = "s", seed: int | None = None, **kw) -> Path:
