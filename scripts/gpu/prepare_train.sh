@@ -3,7 +3,7 @@
 # CUDA-vs-CPU training comparison on one LOM scene (default sofa), scripts/gpu/cuda-vs-cpu.yaml:
 #   - the scene, copied (the GPU machine sees only the repository), with its COLMAP model turned into
 #     points.ply + points_cameras.json (the same points, colours and camera centres, float32): the
-#     model is read with pycolmap, whose 38 MB wheel does not fit the 64 MiB that travel;
+#     model is read with pycolmap, whose 38 MB wheel does not fit a 64 MiB transfer;
 #   - its leave-one-out correction weights (outputs/correction-loo/<scene>/best.pt) in float16, as
 #     the shipped weights are stored (21 MB in float32).
 # Run the same grid here for the CPU side: both then train on identical inputs.

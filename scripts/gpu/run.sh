@@ -15,7 +15,7 @@ mkdir -p "$OUT" "$SITE"
 # Wheels install into a private target dir put first on sys.path (no system or user site changes).
 export PYTHONPATH="$SITE:$ROOT${PYTHONPATH:+:$PYTHONPATH}"
 export PATH="$SITE/bin:$PATH"
-# gsplat's JIT build lives here, so it survives between calls while the machine stays warm.
+# gsplat's JIT build lives here, so it survives between runs on the same machine.
 export TORCH_EXTENSIONS_DIR=$ROOT/.gpu-build/torch_extensions
 export MAX_JOBS="${MAX_JOBS:-$(nproc)}"
 export TORCHDYNAMO_DISABLE=1
@@ -119,7 +119,7 @@ step_train() {
   MPLBACKEND=Agg timeout "${TRAIN_LIMIT_S:-480}" "$PY" -m naka_gs_plugin.scripts.bench "$grid" --out "$OUT/$name" || rc=$?
   # The grid records a failed run and carries on; here a failed run fails the step.
   "$PY" -c "import json, sys; r = json.load(open(sys.argv[1]))['runs']; bad = [k for k, v in r.items() if v['status'] != 'ok']; print('failed runs:', bad) if bad else None; sys.exit(bool(bad))" "$OUT/$name/results.json" || rc=1
-  # $OUT returns at most 8 files, 2 folders down: the run folder travels as one archive (no checkpoint).
+  # The run folder as one archive (no checkpoint): one file to copy back.
   tar czf "$OUT/$name.tgz" --exclude '*.ckpt' --exclude cache -C "$OUT" "$name" && rm -rf "${OUT:?}/$name"
   return $rc
 }
@@ -128,8 +128,7 @@ step_correction() {
   # The correction network's GPU recipe ($RECIPE, default naka_gs_plugin/configs/correction/gpu.yaml):
   # the shipped weights (all data) and the 4 leave-one-scene-out variants of the LOM protocol, trained
   # at once on the one GPU (CPU cores split between them for loading and augmentation). Data staged by
-  # prepare_correction.sh in two parts, .gpu-corr-a (carried by an earlier call on this warm machine)
-  # and .gpu-corr-b. Epochs: the recipe's, lowered so that all five fit $CORRECTION_BUDGET_S seconds
+  # prepare_correction.sh in two parts, .gpu-corr-a and .gpu-corr-b. Epochs: the recipe's, lowered so that all five fit $CORRECTION_BUDGET_S seconds
   # (default 400) by a timed probe of training iterations. Results: $OUT/correction-<name>.pt (float16,
   # as shipped; provenance inside) and correction-runs.tgz (logs, history.json per run).
   local a=.gpu-corr-a b=.gpu-corr-b recipe=${RECIPE:-naka_gs_plugin/configs/correction/gpu.yaml}
