@@ -22,13 +22,13 @@ from naka_gs_plugin.trainer import NakaGSTrainer
 
 CUDA = torch.cuda.is_available()
 MAX_STEPS = 30000 if CUDA else 7000
-"""Splatfacto's 30k steps on a GPU; on a 2-core CPU 7k, 10-16 min on a 500x375 LOM scene: real
-scenes gain 1.2-1.6 dB PSNR over 3k steps (docs/real-scenes.md), and 10k steps pass 30 min."""
+"""Splatfacto's 30k steps on a GPU; on a 2-core CPU 7k: clearly better than 3k on the real-scene
+protocol, while 10k passes half an hour per scene (docs/real-scenes.md)."""
 
 DECAY_STEPS = 30000 if CUDA else 10000
 """Steps over which the decaying learning rates reach their final values. On the CPU longer than the
-run: at step 7k the means' rate is 6.4e-6 (4x splatfacto's final) and the appearance's 2e-4, which
-scored higher on the LOM protocol than decaying fully by 7k (docs/real-scenes.md, "Slower decay")."""
+run, so the rates at step 7k are still above their final values, which scored higher on the LOM
+protocol than decaying fully by 7k (docs/real-scenes.md, "Slower decay")."""
 
 CPU_SCHEDULE = dict(
     warmup_length=300,
@@ -39,8 +39,8 @@ CPU_SCHEDULE = dict(
 )
 """Splatfacto's densification/SH schedule compressed to the CPU's 10k-step learning-rate schedule
 (DECAY_STEPS): densify during its first half, as splatfacto does. Left at splatfacto's 30k-step values,
-screen-size splitting (radius > 5% of the image) stays on for the whole run and doubled the Gaussian
-count every 100 steps (1.1 M at step 1400 on LOM sofa at downscale 4)."""
+screen-size splitting (radius > 5% of the image) stays on for the whole run and the Gaussian count
+explodes (docs/design.md)."""
 
 
 def _adam(lr: float, final: float | None = None, warmup: int = 0) -> dict:

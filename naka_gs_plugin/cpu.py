@@ -1,7 +1,8 @@
 """What this CPU can do, for the places that choose a dtype or a thread count (a leaf module).
 
 - :func:`native_bf16`: bfloat16 convolutions are fast only with AVX-512 BF16 or AMX; elsewhere oneDNN
-  emulates them, about 5x slower than float32 (the correction network's ``auto`` mode reads this).
+  emulates them, several times slower than float32 (docs/cpu.md; the correction network's ``auto``
+  mode reads this).
 - :func:`fit_threads`: PyTorch starts one thread per physical core of the *machine*, also inside a
   container limited to fewer CPUs (CPU affinity, a cgroup CPU quota); more threads than CPUs turns
   every OpenMP barrier into a wait for a descheduled thread. numba's kernels follow PyTorch's count.
@@ -100,10 +101,9 @@ def keep_freed_memory() -> bool:
 
     A fresh process gets this from glibc's adaptive thresholds, but they stop adapting for good once
     anything sets them with ``mallopt`` (the lean correction forward does, :func:`naka_gs_plugin.enhance.
-    lean_ops.reuse_freed_memory`). Pinned at glibc's initial 128 KiB, every training tensor was mapped
-    fresh and page-faulted on each step: on LOM shrub (500x375, 95k Gaussians, AMD EPYC Zen 4) the SSIM
-    loss's forward and backward took 226 ms instead of 47 and a full-size step 480 ms instead of 283-299
-    (docs/cpu.md)."""
+    lean_ops.reuse_freed_memory`). Pinned at glibc's initial 128 KiB, every training tensor is mapped
+    fresh and page-faulted on each step, which made full-size training steps much slower (figures:
+    docs/cpu.md, "Training after the correction ran in the same process")."""
     libc = glibc()
     if libc is None:
         return False

@@ -85,7 +85,7 @@ class EnhanceConfig(InstantiateConfig):
     exposure_curve: Curve = "gain"
     """The curve ``exposure`` lifts with: ``gain``, every linear value times one factor with a highlight
     shoulder (a longer exposure: blacks and contrast kept), or ``power``, ``x ** g`` on the sRGB values
-    (lifts shadows most, flattening the views; -2.0 dB on LOM bike, docs/real-scenes.md)."""
+    (lifts shadows most, flattening the views; worse on the LOM protocol, docs/real-scenes.md)."""
     exposure_metering: Metering = "luminance"
     """How ``exposure`` reads a scene's level: ``luminance``, the mean luminance in linear light, as a
     camera meters (a dark-toned scene with bright areas is not lifted as if under-exposed), or ``mean``,
@@ -226,8 +226,8 @@ class Enhancer:
         """Store ``image`` atomically; a failed write (disk full, permissions) warns once and the run goes on."""
         if self.cache_dir is None:
             return
-        # Raw uint16 .npy: lossless to 1.5e-5 and ~40x faster to read than a 16-bit PNG (1 ms vs 50 ms
-        # at 1764x1172), which matters once the correction network makes recomputation expensive.
+        # Raw uint16 .npy: lossless to 1.5e-5 and far faster to read than a 16-bit PNG, which matters once
+        # the correction network makes recomputation expensive.
         arr = (image.detach().cpu().clamp(0, 1).numpy() * 65535.0).round().astype(np.uint16)
         try:
             self.cache_dir.mkdir(parents=True, exist_ok=True)
