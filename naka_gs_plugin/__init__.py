@@ -8,14 +8,22 @@ Layers, bottom to top; a module imports only its own layer and those below (``te
 - :mod:`naka_gs_plugin.enhance`: Naka-Rushton pre-enhancement and the chroma-correction network;
 - :mod:`naka_gs_plugin.points`: point sources, alignment, PPM and seeding;
 - :mod:`naka_gs_plugin.model`: the splatfacto-derived model and its CPU rasterizers;
-- side by side: :mod:`naka_gs_plugin.sim` (the low-light scene simulator) and the method's wiring (the
-  low-light datamanager, :mod:`.pipeline`, :mod:`.trainer`, :mod:`.config`, which is kept import-light);
-- :mod:`naka_gs_plugin.scripts` (every console script) and :mod:`naka_gs_plugin.bench` (the benchmarks).
+- side by side: :mod:`naka_gs_plugin.sim` (the low-light scene simulator) and the method's wiring
+  (:mod:`.datamanager`, :mod:`.pipeline`, :mod:`.trainer`, :mod:`.config`, which is kept import-light);
+- :mod:`naka_gs_plugin.scripts` (every console script). The benchmarks live outside the package, in the
+  repository's ``benchmarks/``.
 
 Importing the package registers numpy's scalar types as safe globals for ``torch.load``: torch >= 2.6
 loads with ``weights_only=True`` and nerfstudio 1.1.5 writes ``np.float64`` learning rates into its
-checkpoints, which otherwise breaks ``ns-eval``, ``ns-viewer`` and resume on every machine.
+checkpoints, which otherwise breaks ``ns-eval``, ``ns-viewer`` and resume on every machine. It also
+lets run configs written before a module moved (:data:`RENAMED`) load: nerfstudio's ``config.yml`` names
+the datamanager's module.
 """
+
+import importlib as _importlib
+import importlib.abc as _importlib_abc
+import importlib.util as _importlib_util
+import sys as _sys
 
 import numpy as _np
 import torch as _torch
@@ -34,3 +42,22 @@ _torch.serialization.add_safe_globals(
         type(_np.dtype(_np.float64)),
     ]
 )
+
+RENAMED = {"naka_gs_plugin.data.lowlight_datamanager": "naka_gs_plugin.datamanager"}
+"""Old module name -> new one, for saved run configs (``!!python/object:<module>.<class>``)."""
+
+
+class _RenamedModules(_importlib_abc.MetaPathFinder, _importlib_abc.Loader):
+    """Imports an old module name as the module it became (the same module object, not a copy)."""
+
+    def find_spec(self, name, path=None, target=None):
+        return _importlib_util.spec_from_loader(name, self) if name in RENAMED else None
+
+    def create_module(self, spec):
+        return _importlib.import_module(RENAMED[spec.name])
+
+    def exec_module(self, module):
+        pass
+
+
+_sys.meta_path.append(_RenamedModules())

@@ -15,7 +15,7 @@ from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
-from naka_gs_plugin.data.lowlight_datamanager import LowLightDatamanagerConfig
+from naka_gs_plugin.datamanager import LowLightDatamanagerConfig
 from naka_gs_plugin.model.naka_gs_model import NakaGSModelConfig
 from naka_gs_plugin.pipeline import NakaGSPipelineConfig
 from naka_gs_plugin.trainer import NakaGSTrainer

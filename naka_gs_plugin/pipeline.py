@@ -27,8 +27,8 @@ from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineC
 from torch.cuda.amp.grad_scaler import GradScaler
 
 from naka_gs_plugin.data.cache import content_hash
-from naka_gs_plugin.data.lowlight_datamanager import LowLightDatamanager, LowLightDatamanagerConfig
 from naka_gs_plugin.data.lowlight_dataparser import read_split
+from naka_gs_plugin.datamanager import LowLightDatamanager, LowLightDatamanagerConfig
 from naka_gs_plugin.model.naka_gs_model import NakaGSModelConfig
 from naka_gs_plugin.points.seeding import (
     PointInitConfig,

@@ -2,7 +2,7 @@
 
 They live in ``naka_gs_plugin/configs`` and ``naka_gs_plugin/enhance/weights``, so a non-editable
 ``pip install`` carries them. A user-given path ``configs/...`` that does not exist where it is given
-names the shipped file, so ``naka-gs-bench configs/bench/smoke.yaml`` works from any directory.
+names the shipped file, so ``naka-gs-sim configs/scenes/dark-noisy.yaml`` works from any directory.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from importlib.resources import files
 from pathlib import Path
 
 CONFIGS = Path(str(files("naka_gs_plugin") / "configs"))
-"""The shipped configs: ``bench/`` grids, ``scenes/`` simulator specs, ``correction/`` recipes."""
+"""The shipped configs: ``scenes/`` simulator specs, ``correction/`` recipes."""
 
 
 def config_file(path: Path) -> Path:

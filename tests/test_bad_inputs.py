@@ -23,9 +23,9 @@ import torch
 
 from naka_gs_plugin.data import safe_io
 from naka_gs_plugin.data.images import ImageReadError, read_rgb
-from naka_gs_plugin.data.lowlight_datamanager import LowLightDatamanagerConfig
 from naka_gs_plugin.data.lowlight_dataparser import LowLightDataError, LowLightDataParserConfig, downscaled_copy
 from naka_gs_plugin.data.safe_io import MARKER, UnsafeOutputError, atomic_write
+from naka_gs_plugin.datamanager import LowLightDatamanagerConfig
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
 from naka_gs_plugin.scripts import enhance as enhance_cli
 from naka_gs_plugin.scripts import sim as sim_cli
@@ -114,8 +114,8 @@ def pose0(scene: Path) -> np.ndarray:
     return np.array(json.loads((scene / "transforms_train.json").read_text())["frames"][0]["transform_matrix"])
 
 
-def parse(scene: Path, factor: int = 1, cache: Optional[Path] = None) -> Action:
-    config = LowLightDataParserConfig(data=scene, downscale_factor=factor, cache_dir=cache)
+def parse(scene: Path, factor: int = 1) -> Action:
+    config = LowLightDataParserConfig(data=scene, downscale_factor=factor)
     return lambda: config.setup().get_dataparser_outputs("train")
 
 
@@ -416,7 +416,8 @@ def _last_writer_wins(env, arr):
 def cache_imwrite_fails(env):
     s = env.scene()
     env.monkeypatch.setattr(cv2, "imwrite", lambda *a, **k: False)  # what cv2 does on a full disk
-    return parse(s, factor=2, cache=env.tmp / "c"), [s]
+    env.monkeypatch.setenv("NAKA_GS_CACHE", str(env.tmp / "c"))
+    return parse(s, factor=2), [s]
 
 
 def _nothing_committed(env, _):
@@ -424,11 +425,11 @@ def _nothing_committed(env, _):
 
 
 def cache_corrupt_downscaled_copy(env):
-    s, cache = env.scene(), env.tmp / "c"
+    s = env.scene()
     src = first_train_image(s)
-    good = downscaled_copy(src, 2, cache).read_bytes()
-    truncate(downscaled_copy(src, 2, cache))
-    return lambda: downscaled_copy(src, 2, cache).read_bytes() == good, [s]
+    good = downscaled_copy(src, 2).read_bytes()
+    truncate(downscaled_copy(src, 2))
+    return lambda: downscaled_copy(src, 2).read_bytes() == good, [s]
 
 
 def _recomputed_with_warning(env, same):

@@ -6,9 +6,10 @@ from pathlib import Path
 
 import pytest
 
-from naka_gs_plugin.bench.grid import BenchSpecError, load_grid, pareto, set_setting
-from naka_gs_plugin.scripts.bench import Bench
+from benchmarks.grid import Bench, BenchSpecError, load_grid, pareto, set_setting
 from naka_gs_plugin.shipped import CONFIGS
+
+GRIDS = Path(__file__).resolve().parents[1] / "benchmarks" / "configs"
 
 
 def _grid(tmp_path: Path, scene: Path, families: str) -> Path:
@@ -101,27 +102,26 @@ def test_pareto_front_keeps_only_undominated_points():
 
 
 def test_every_shipped_grid_loads():
-    """Each configs/bench/*.yaml names settings that exist (the LOM protocol's per-scene weights too)."""
-    grids = sorted((CONFIGS / "bench").glob("*.yaml"))
+    """Each benchmarks/configs/*.yaml names settings that exist (the LOM protocol's per-scene weights too)."""
+    grids = sorted(GRIDS.glob("*.yaml"))
     assert any(g.name == "lom-holdout.yaml" for g in grids)
     for grid in grids:
         spec = load_grid(grid)
         assert spec.milestones and spec.families
-    holdout = load_grid(Path("configs/bench/lom-holdout.yaml"))
+    holdout = load_grid(Path("benchmarks/configs/lom-holdout.yaml"))
     for name, scene in holdout.scenes.items():
         assert scene["correction"] == f"outputs/correction-loo/{name}/best.pt" and scene["data"].endswith(f"lom/{name}")
 
 
-def test_configs_paths_name_the_shipped_files(tmp_path, monkeypatch):
-    """``configs/...`` works from any folder (the package's file), and a user's own file at that path wins."""
+def test_grid_paths_resolve_from_any_folder(tmp_path, monkeypatch):
+    """``benchmarks/configs/...`` works from any folder (this clone's file), and a user's own file at that path wins;
+    the simulator specs a grid names (``configs/scenes/...``) are the package's."""
     from naka_gs_plugin.shipped import config_file
 
     monkeypatch.chdir(tmp_path)
-    assert config_file(Path("configs/bench/smoke.yaml")) == CONFIGS / "bench" / "smoke.yaml"
-    assert load_grid(Path("configs/bench/smoke.yaml")).name == "smoke"
-    own = tmp_path / "configs" / "bench" / "smoke.yaml"
+    assert load_grid(Path("benchmarks/configs/smoke.yaml")).path == GRIDS / "smoke.yaml"
+    own = tmp_path / "benchmarks" / "configs" / "smoke.yaml"
     own.parent.mkdir(parents=True)
-    own.write_text((CONFIGS / "bench" / "smoke.yaml").read_text().replace("name: smoke", "name: mine"))
-    assert config_file(Path("configs/bench/smoke.yaml")) == Path("configs/bench/smoke.yaml")
-    assert load_grid(Path("configs/bench/smoke.yaml")).name == "mine"
-    assert config_file(Path("configs/bench/missing.yaml")) == Path("configs/bench/missing.yaml")
+    own.write_text((GRIDS / "smoke.yaml").read_text().replace("name: smoke", "name: mine"))
+    assert load_grid(Path("benchmarks/configs/smoke.yaml")).name == "mine"
+    assert config_file(Path("configs/scenes/dark-noisy.yaml")) == CONFIGS / "scenes" / "dark-noisy.yaml"

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from naka_gs_plugin.bench.harness import peak_rss, reset_peak_rss, run_isolated
+from benchmarks.harness import peak_rss, reset_peak_rss, run_isolated
 
 MB = 2**20
 

@@ -6,6 +6,7 @@ import torch
 from torch.testing import assert_close
 
 from naka_gs_plugin.enhance.chroma import capture_chroma
+from naka_gs_plugin.enhance.naka import naka_enhance
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
 
 
@@ -60,18 +61,15 @@ def test_sizes_and_blur_are_checked():
         capture_chroma(image, image, blur=0.0)
     with pytest.raises(ValueError, match="enhance.chroma-blur"):
         Enhancer(EnhanceConfig(correction="none", use_cache=False, chroma_blur=-1.0))
-    with pytest.raises(ValueError, match="enhance.chroma must be"):
-        Enhancer(EnhanceConfig(correction="none", use_cache=False, chroma="capturee"))
 
 
-def test_enhancer_takes_colour_from_the_capture_and_network_keeps_the_naka_colour(tmp_path):
+def test_enhancer_takes_colour_from_the_capture_where_naka_alone_changes_it():
     truth = _patches(2)
     low = [kornia.color.linear_rgb_to_rgb((_linear(truth) * f).permute(2, 0, 1)).permute(1, 2, 0) for f in (0.02, 0.03)]
-    kw = dict(correction="none", exposure="none", cache_dir=tmp_path)
-    capture = Enhancer(EnhanceConfig(**kw)).enhance_images(low)
-    network = Enhancer(EnhanceConfig(chroma="network", **kw))
-    plain = network.enhance_images(low)
-    assert network.last_run["computed"] == 2  # a separate cache entry: the colour is part of the key
+    enhancer = Enhancer(EnhanceConfig(correction="none", exposure="none", use_cache=False))
+    capture = enhancer.enhance_images(low)
+    assert [stage.name for stage in enhancer.view_stages] == ["naka", "chroma"]
+    plain = [naka_enhance(im) for im in low]
 
     def chromaticity(im: torch.Tensor) -> torch.Tensor:
         return _linear(im)[INNER] / _linear(im)[INNER].mean(-1, keepdim=True)
@@ -81,15 +79,6 @@ def test_enhancer_takes_colour_from_the_capture_and_network_keeps_the_naka_colou
     unclipped = _linear(capture[0])[INNER].amax(-1) < 0.99  # bright colours clip
     assert unclipped.float().mean() > 0.5
     assert_close(chromaticity(capture[0])[unclipped], chromaticity(truth)[unclipped], atol=0.02, rtol=0)
-
-
-def test_a_run_saved_before_chroma_existed_keeps_the_network_colour():
-    import yaml
-
-    old = EnhanceConfig()
-    del old.__dict__["chroma"]
-    assert yaml.load(yaml.dump(old), Loader=yaml.Loader).chroma == "network"
-    assert yaml.load(yaml.dump(EnhanceConfig()), Loader=yaml.Loader).chroma == "capture"
 
 
 def test_images_smaller_than_the_blur_window_work():

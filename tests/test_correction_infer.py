@@ -8,6 +8,7 @@ import torch
 
 import naka_gs_plugin.enhance.pipeline as pipeline_mod
 from naka_gs_plugin.enhance.checkpoint import authors_key_map, load_correction, save_correction
+from naka_gs_plugin.enhance.chroma import capture_chroma
 from naka_gs_plugin.enhance.correction import (
     MODES,
     CorrectionRunner,
@@ -195,13 +196,13 @@ def _images(n=2, h=40, w=56):
 def test_enhancer_applies_the_correction_and_keys_the_cache(tmp_path):
     ckpt = save_correction(_net(SMALL), tmp_path / "net.pt")
     images = _images()
-    # chroma network: the correction's own output, without the capture's colour (tests/test_chroma.py)
-    naka_only = Enhancer(EnhanceConfig(correction="none", chroma="network")).enhance_images(images)
-    corrected_enh = Enhancer(EnhanceConfig(correction=str(ckpt), correction_mode="exact", chroma="network"))
+    # The correction's output, then the capture's colour (tests/test_chroma.py).
+    naka_only = Enhancer(EnhanceConfig(correction="none")).enhance_images(images)
+    corrected_enh = Enhancer(EnhanceConfig(correction=str(ckpt), correction_mode="exact"))
     corrected = corrected_enh.enhance_images(images)
     assert corrected_enh.last_run["computed"] == 2
     low = images[0].float() / 255
-    want = correct_image(load_correction(ckpt), low, naka_enhance(low), "exact")
+    want = capture_chroma(correct_image(load_correction(ckpt), low, naka_enhance(low), "exact"), low)
     assert (corrected[0] - want).abs().max() < 1e-5  # the cache's 16-bit rounding
     assert (corrected[0] - naka_only[0]).abs().mean() > 1e-3
 
@@ -211,7 +212,7 @@ def test_enhancer_applies_the_correction_and_keys_the_cache(tmp_path):
     base = keys(correction=str(ckpt), correction_mode="exact")
     assert base != keys(correction="none")
     assert base != keys(correction=str(ckpt), correction_mode="lean-f32")
-    again = Enhancer(EnhanceConfig(correction=str(ckpt), correction_mode="exact", chroma="network"))
+    again = Enhancer(EnhanceConfig(correction=str(ckpt), correction_mode="exact"))
     again.enhance_images(images)
     assert again.last_run["computed"] == 0  # same weights and mode: cached
     save_correction(_net(SMALL, seed=5), ckpt)  # new weights in the same file
@@ -222,12 +223,10 @@ def test_sigma_auto_is_the_scene_mean_and_its_key_covers_every_view():
     images = _images(n=3)
     mean = float(torch.cat([im.double().flatten() / 255 for im in images]).mean())
     assert abs(scene_sigma(images) - mean) < 1e-7 and scene_sigma([torch.zeros(4, 4, 3)]) == 1e-3
-    out = Enhancer(EnhanceConfig(sigma="auto", correction="none", chroma="network", use_cache=False)).enhance_images(
-        images
-    )
+    out = Enhancer(EnhanceConfig(sigma="auto", correction="none", use_cache=False)).enhance_images(images)
     low = images[1].float() / 255
-    assert (out[1] - naka_enhance(low, sigma=mean)).abs().max() < 1e-4  # the 16-bit rounding
-    assert (out[1] - naka_enhance(low, sigma=0.05)).abs().max() > 1e-2
+    assert (out[1] - capture_chroma(naka_enhance(low, sigma=mean), low)).abs().max() < 1e-4  # the 16-bit rounding
+    assert (out[1] - capture_chroma(naka_enhance(low, sigma=0.05), low)).abs().max() > 1e-2
 
     def keys(imgs, sigma):
         return Enhancer(EnhanceConfig(sigma=sigma, correction="none"))._keys(imgs)
@@ -266,8 +265,8 @@ def test_unknown_mode_rejected():
 
 def test_datamanager_corrects_training_images_only(toy_scene, tmp_path):
     from naka_gs_plugin.data.images import read_stored
-    from naka_gs_plugin.data.lowlight_datamanager import LowLightDatamanagerConfig
     from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig
+    from naka_gs_plugin.datamanager import LowLightDatamanagerConfig
 
     ckpt = save_correction(_net(SMALL), tmp_path / "net.pt")
 
@@ -289,7 +288,7 @@ def test_datamanager_corrects_training_images_only(toy_scene, tmp_path):
 def test_bench_times_modes_in_fresh_processes_and_writes_the_sheet(toy_scene, tmp_path):
     from PIL import Image
 
-    from naka_gs_plugin.scripts.bench_correction import BenchCorrection
+    from benchmarks.correction_speed import BenchCorrection
 
     views = tuple(sorted((toy_scene / "train").glob("*.png"))[:2])
     bench = BenchCorrection(

@@ -322,7 +322,7 @@ def test_recipe_yaml_loads_and_unknown_keys_fail(tmp_path):
 
 
 def test_gray_world_equalises_channel_means():
-    from naka_gs_plugin.bench.correction_eval import gray_world
+    from benchmarks.correction_eval import gray_world
 
     img = torch.stack([torch.full((4, 5), 0.2), torch.full((4, 5), 0.4), torch.full((4, 5), 0.6)])[None]
     img[..., 0, 0] = img[..., 0, 0] * 0.5  # not constant
@@ -332,8 +332,8 @@ def test_gray_world_equalises_channel_means():
 
 
 def test_eval_cli_scores_methods_and_neutral_net_equals_naka(tmp_path):
+    from benchmarks.correction_eval import EvalCorrection
     from naka_gs_plugin.enhance.checkpoint import save_correction
-    from naka_gs_plugin.scripts.eval_correction import EvalCorrection
 
     _write_pairs(tmp_path / "pairs", "eval", 2, np.random.default_rng(2))
     model = ChromaGuided(TINY)

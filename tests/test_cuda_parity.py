@@ -1,4 +1,4 @@
-"""The parity harness (naka_gs_plugin/bench/cuda_parity.py): gsplat CUDA parity where CUDA is present,
+"""The parity harness (benchmarks/cuda_parity.py): gsplat CUDA parity where CUDA is present,
 the harness itself in stand-in mode (torch path as the reference, cpu-fast compared) everywhere.
 
 Self-contained (no conftest fixtures): ``scripts/gpu/run.sh`` runs this file with ``--noconftest`` on
@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from naka_gs_plugin.bench.cuda_parity import (
+from benchmarks.cuda_parity import (
     EXACT_PAIRS_OPACITY,
     FORWARD_QUANTITIES,
     GRAD_INPUTS,

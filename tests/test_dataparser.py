@@ -64,18 +64,15 @@ def test_lom_scene_parses_with_distortion_and_ground_truth(scene):
 
 @pytest.mark.parametrize("factor", [0, -2])
 def test_downscale_factor_below_one_names_the_option(toy_scene, tmp_path, factor):
-    parser = LowLightDataParserConfig(data=toy_scene, downscale_factor=factor, cache_dir=tmp_path).setup()
+    parser = LowLightDataParserConfig(data=toy_scene, downscale_factor=factor).setup()
     with pytest.raises(LowLightDataError, match=rf"downscale-factor must be a whole number >= 1, got {factor}"):
         parser.get_dataparser_outputs("train")
 
 
-def test_auto_downscale_and_cached_copies(toy_scene, tmp_path):
+def test_auto_downscale_and_cached_copies(toy_scene, tmp_path, monkeypatch):
+    monkeypatch.setenv("NAKA_GS_CACHE", str(tmp_path))
     assert auto_downscale(1764, 1172) == 2 and auto_downscale(500, 375) == 1
-    out = (
-        LowLightDataParserConfig(data=toy_scene, downscale_factor=2, cache_dir=tmp_path)
-        .setup()
-        .get_dataparser_outputs("train")
-    )
+    out = LowLightDataParserConfig(data=toy_scene, downscale_factor=2).setup().get_dataparser_outputs("train")
     assert all(str(p).startswith(str(tmp_path)) for p in out.image_filenames)
     from PIL import Image
 

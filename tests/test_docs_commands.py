@@ -1,4 +1,5 @@
-"""Every command in README.md and docs/*.md names a console script that exists and options its ``--help`` lists."""
+"""Every command in README.md and docs/*.md names a console script (or a ``python -m benchmarks.<name>``) that
+exists and options its ``--help`` lists."""
 
 from __future__ import annotations
 
@@ -34,6 +35,8 @@ def command_of(text: str) -> Optional[Tuple[str, List[str]]]:
     if not words:
         return None
     name = words[0].removeprefix(".venv/bin/")
+    if name == "python" and words[1:2] == ["-m"] and re.fullmatch(r"benchmarks\.\w+", " ".join(words[2:3])):
+        return f"python -m {words[2]}", words[3:]
     if re.fullmatch(r"naka-gs-[a-z-]+", name) or (
         name in NERFSTUDIO and (name != "ns-train" or words[1:2] == ["naka-gs"])
     ):
@@ -77,8 +80,9 @@ def help_argv(script: str, words: List[str]) -> Tuple[str, ...]:
 def help_options(argv: Tuple[str, ...]) -> frozenset:
     """Options listed by ``argv --help`` (run once per command, at 80 columns: one column of boxes)."""
     env = dict(os.environ, COLUMNS="80", TORCHDYNAMO_DISABLE="1")
+    command = [sys.executable, "-m", argv[0].split()[-1]] if argv[0].startswith("python -m ") else [str(BIN / argv[0])]
     out = subprocess.run(
-        [str(BIN / argv[0]), *argv[1:], "--help"], capture_output=True, text=True, env=env, timeout=120
+        [*command, *argv[1:], "--help"], capture_output=True, text=True, env=env, timeout=120, cwd=ROOT
     )
     assert out.returncode == 0, f"{' '.join(argv)} --help failed:\n{out.stderr[-2000:]}"
     # Only the option heads (a box's line starting with a dash): descriptions may name other commands' options.
@@ -89,7 +93,7 @@ def help_options(argv: Tuple[str, ...]) -> frozenset:
 def test_docs_name_commands():
     """The extraction finds the commands a reader runs first (guards against a parser that finds nothing)."""
     scripts = {script for _, script, _ in COMMANDS}
-    assert {"naka-gs-enhance", "naka-gs-bench", "ns-train", "ns-eval"} <= scripts, scripts
+    assert {"naka-gs-enhance", "python -m benchmarks.grid", "ns-train", "ns-eval"} <= scripts, scripts
 
 
 @pytest.mark.parametrize("where,script,words", COMMANDS, ids=[f"{w} {s}" for w, s, _ in COMMANDS])
@@ -97,6 +101,9 @@ def test_doc_command_parses(where, script, words):
     """The script is installed by pyproject.toml and each ``--option`` written after it is in its ``--help``."""
     if script.startswith("naka-gs-"):
         assert script in SCRIPTS, f"{where}: {script} is not in pyproject.toml [project.scripts]"
+    if script.startswith("python -m "):
+        module = ROOT / (script.split()[-1].replace(".", "/") + ".py")
+        assert module.is_file(), f"{where}: {script}: no {module.relative_to(ROOT)}"
     argv = help_argv(script, words)
     options = [normal(o) for o in OPTION.findall(" ".join(words))]
     known = help_options(argv) if options else frozenset()

@@ -8,10 +8,10 @@ from typing import Dict, List, Set
 
 PACKAGE = Path(__file__).resolve().parents[1] / "naka_gs_plugin"
 
-LAYERS = ("helpers", "data", "enhance", "points", "model", "sim and method", "scripts and benches")
+LAYERS = ("helpers", "data", "enhance", "points", "model", "sim and method", "scripts")
 """Bottom to top (``naka_gs_plugin/__init__.py`` describes each)."""
 HELPERS = {"cpu", "progress", "metrics", "sheet", "shipped"}
-METHOD = {"data.lowlight_datamanager", "pipeline", "trainer", "config"}
+METHOD = {"datamanager", "pipeline", "trainer", "config"}
 """The method's wiring, side by side with the simulator above the model."""
 
 
@@ -20,7 +20,7 @@ def layer(module: str) -> int:
     top = module.split(".")[0]
     if module == "" or module in HELPERS:
         return 0
-    if top in ("scripts", "bench"):
+    if top == "scripts":
         return 6
     if module in METHOD or top == "sim":
         return 5
@@ -55,6 +55,32 @@ def test_no_module_imports_a_layer_above_it():
         if layer(dep) > layer(module)
     ]
     assert not upward, "imports against the package order:\n" + "\n".join(upward)
+
+
+def test_the_package_never_imports_the_benchmarks():
+    """``benchmarks/`` is not installed: a package module that imported it would break every user's install."""
+    graph = {}
+    for path in sorted(PACKAGE.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = [node.module] if isinstance(node, ast.ImportFrom) and node.module else []
+            names += [alias.name for alias in node.names] if isinstance(node, ast.Import) else []
+            if any(name.split(".")[0] == "benchmarks" for name in names):
+                graph.setdefault(str(path.relative_to(PACKAGE)), []).extend(names)
+    assert not graph, graph
+
+
+def test_a_renamed_module_still_loads_old_run_configs():
+    """Run configs written before the datamanager moved name ``naka_gs_plugin.data.lowlight_datamanager``."""
+    import yaml
+
+    from naka_gs_plugin.datamanager import LowLightDatamanager, LowLightDatamanagerConfig
+
+    old = (
+        "!!python/object:naka_gs_plugin.data.lowlight_datamanager.LowLightDatamanagerConfig\n"
+        "_target: !!python/name:naka_gs_plugin.data.lowlight_datamanager.LowLightDatamanager ''\n"
+    )
+    config = yaml.load(old, Loader=yaml.Loader)
+    assert type(config) is LowLightDatamanagerConfig and config._target is LowLightDatamanager
 
 
 def test_no_relative_imports():
@@ -103,7 +129,7 @@ def test_gpu_side_modules_import_without_nerfstudio():
         "        if name.split('.')[0] == 'nerfstudio':\n"
         "            raise ImportError(name)\n"
         "sys.meta_path.insert(0, Block())\n"
-        "import naka_gs_plugin.scripts.cuda_parity, naka_gs_plugin.scripts.train_correction\n"
+        "import benchmarks.cuda_parity, naka_gs_plugin.scripts.train_correction\n"
         "import naka_gs_plugin.model.rasterize_cpu_fast\n"
     )
     proc = subprocess.run([sys.executable, "-c", block], capture_output=True, text=True)

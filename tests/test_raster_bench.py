@@ -1,12 +1,12 @@
-"""naka-gs-bench-raster's handling of the dense reference budget (no timing runs here)."""
+"""python -m benchmarks.rasterizer's handling of the dense reference budget (no timing runs here)."""
 
 from __future__ import annotations
 
 import pytest
 from rich.console import Console
 
-from naka_gs_plugin.bench import rasterizer_bench as bench
-from naka_gs_plugin.scripts.bench_raster import entrypoint
+import benchmarks.rasterizer as bench
+from benchmarks.rasterizer import entrypoint
 
 
 def _case(fwd_bwd: float, **extra) -> dict:

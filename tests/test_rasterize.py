@@ -12,7 +12,7 @@ from gsplat.cuda._torch_impl import (
     _spherical_harmonics,
 )
 
-from naka_gs_plugin.bench.cuda_parity import make_scene
+from benchmarks.cuda_parity import make_scene
 from naka_gs_plugin.model.projection import (
     pixel_bounds,
     project_gaussians,

@@ -11,10 +11,10 @@ import open3d as o3d
 import pytest
 import torch
 
+import benchmarks.sim_stats as stats
 from naka_gs_plugin.data.images import read_rgb
 from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig
 from naka_gs_plugin.scripts import sim as cli
-from naka_gs_plugin.sim import stats
 from naka_gs_plugin.sim.effects import sensor
 from naka_gs_plugin.sim.generate import build_scene, generate
 from naka_gs_plugin.sim.spec import Noise, SimSpecError, load_spec, shipped_specs

@@ -118,8 +118,8 @@ def test_nonfinite_pixels_are_rejected_not_propagated(tmp_path):
 
 def test_16bit_input_keeps_dark_detail(tmp_path, toy_scene):
     """16-bit captures load at full precision: levels below 1/255 survive (an 8-bit read zeroes them)."""
-    from naka_gs_plugin.data.lowlight_datamanager import LowLightDataset
     from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig, downscaled_copy
+    from naka_gs_plugin.datamanager import LowLightDataset
 
     scene = tmp_path / "scene"
     shutil.copytree(toy_scene, scene)
@@ -133,7 +133,7 @@ def test_16bit_input_keeps_dark_detail(tmp_path, toy_scene):
     image = dataset.get_image_float32(index).numpy()
     np.testing.assert_allclose(image, levels[..., ::-1] / 65535.0, atol=1e-7)
     assert image.max() < 1 / 255 and (image > 0).all()
-    small = read_rgb(downscaled_copy(first, 2, tmp_path / "cache"))
+    small = read_rgb(downscaled_copy(first, 2))
     assert small.max() < 1 / 255 and (small > 0).all()  # the downscaled copy stays 16-bit
 
 

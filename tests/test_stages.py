@@ -2,16 +2,19 @@
 
 import dataclasses
 import shutil
+from typing import ClassVar
 
 import pytest
 import torch
 
+import naka_gs_plugin.enhance.pipeline as pipeline_mod
+import naka_gs_plugin.enhance.stages as stages_mod
 from naka_gs_plugin.enhance.checkpoint import save_correction
 from naka_gs_plugin.enhance.chroma import capture_chroma
 from naka_gs_plugin.enhance.correction_net import ChromaGuided, ChromaGuidedConfig
 from naka_gs_plugin.enhance.naka import naka_enhance
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
-from naka_gs_plugin.enhance.stages import CaptureChromaStage, CorrectionStage, ExposureStage, NakaStage
+from naka_gs_plugin.enhance.stages import CaptureChromaStage, CorrectionStage, ExposureStage, NakaStage, ViewStage
 
 SMALL = ChromaGuidedConfig(widths=(8, 8, 8, 8), enc_residual=(0, 0, 0))
 
@@ -30,25 +33,47 @@ def test_the_config_builds_the_chain_in_order(tmp_path):
     enhancer = Enhancer(EnhanceConfig(correction=str(ckpt), correction_mode="exact"))
     assert [type(s) for s in enhancer.view_stages] == [NakaStage, CorrectionStage, CaptureChromaStage]
     assert [type(s) for s in enhancer.scene_stages] == [ExposureStage]
-    assert [type(s) for s in Enhancer(EnhanceConfig(correction="none", chroma="network")).view_stages] == [NakaStage]
+    assert [type(s) for s in Enhancer(EnhanceConfig(correction="none")).view_stages] == [NakaStage, CaptureChromaStage]
+    assert Enhancer(EnhanceConfig(exposure="none")).scene_stages == []
     assert Enhancer(EnhanceConfig(method="none")).view_stages == []
 
 
-def test_a_new_stage_option_enters_the_cache_key_by_itself():
-    @dataclasses.dataclass
-    class NakaWithDummy(NakaStage):
-        dummy: float = 0.0
+def test_a_new_stage_is_one_class_plus_one_config_field(monkeypatch):
+    """A stage added to the chain runs in its place and its option enters the cache key with no other edit."""
 
-    assert NakaWithDummy(dummy=0.0).key() != NakaWithDummy(dummy=1.0).key()
-    enhancer = Enhancer(EnhanceConfig(correction="none", chroma="network"))
-    before = enhancer._keys(_images())
-    enhancer.view_stages[0] = NakaWithDummy(dummy=1.0)
-    assert enhancer._keys(_images()) != before
+    @dataclasses.dataclass
+    class Tint(ViewStage):
+        name: ClassVar[str] = "tint"
+        gain: float = 1.0
+
+        @classmethod
+        def build(cls, config, enhancer):
+            return cls(gain=config.tint)
+
+        def apply(self, image, low):
+            return (image * self.gain).clamp(0, 1)
+
+    @dataclasses.dataclass
+    class TintConfig(EnhanceConfig):
+        tint: float = 1.0
+
+    monkeypatch.setattr(stages_mod, "CHAIN", (*stages_mod.CHAIN, Tint))
+    monkeypatch.setattr(pipeline_mod, "CHAIN", stages_mod.CHAIN)
+
+    def run(tint):
+        enhancer = Enhancer(TintConfig(correction="none", exposure="none", use_cache=False, tint=tint))
+        return enhancer, enhancer.enhance_images(_images())
+
+    plain, darker = run(1.0), run(0.5)
+    assert [s.name for s in plain[0].view_stages] == ["naka", "chroma", "tint"]
+    assert plain[0]._keys(_images()) != darker[0]._keys(_images())
+    for a, b in zip(plain[1], darker[1]):
+        torch.testing.assert_close(b, (a * 0.5).clamp(0, 1), atol=2e-5, rtol=0)
 
 
 @pytest.mark.parametrize(
     "option, value",
-    [("sigma", 0.07), ("sigma", "auto"), ("n", 0.8), ("stats", "scene"), ("chroma", "network"), ("chroma_blur", 5.0)],
+    [("sigma", 0.07), ("sigma", "auto"), ("n", 0.8), ("chroma_blur", 5.0)],
 )
 def test_every_option_that_changes_the_cached_views_changes_the_key(option, value):
     assert _key(**{option: value}) != _key()
@@ -57,10 +82,6 @@ def test_every_option_that_changes_the_cached_views_changes_the_key(option, valu
 @pytest.mark.parametrize("option, value", [("exposure", 0.3), ("exposure", "none"), ("use_cache", False)])
 def test_options_applied_after_the_cache_leave_the_key_alone(option, value):
     assert _key(**{option: value}) == _key()
-
-
-def test_the_blur_is_keyed_only_when_capture_chroma_reads_it():
-    assert _key(chroma="network", chroma_blur=5.0) == _key(chroma="network")
 
 
 def test_correction_is_keyed_by_weights_content_and_mode_not_path(tmp_path):

@@ -14,7 +14,7 @@ from pathlib import Path
 import kornia
 import torch
 
-from naka_gs_plugin.data.lowlight_datamanager import LowLightDatamanagerConfig
+from naka_gs_plugin.datamanager import LowLightDatamanagerConfig
 from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig, read_split
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig
 from naka_gs_plugin.enhance.stages import ExposureStage, to_float01

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
-from naka_gs_plugin.scripts.scene_sheet import SceneSheet
+from benchmarks.scene_sheet import SceneSheet
 
 output, configs = Path(sys.argv[1]), [Path(c) for c in sys.argv[2:]]
 rows, table = (

@@ -45,7 +45,7 @@ from torch import Tensor
 
 from naka_gs_plugin.data.cache import default_cache_dir
 from naka_gs_plugin.data.images import IMAGE_SUFFIXES, ImageReadError, read_raw, to_rgb01
-from naka_gs_plugin.data.safe_io import atomic_write, usable_cache_dir
+from naka_gs_plugin.data.safe_io import atomic_write
 
 MAX_AUTO_RESOLUTION = 1600
 """Auto downscale picks the smallest power of two bringing the longer side to at most this (as nerfstudio-data)."""
@@ -78,8 +78,16 @@ class LowLightDataParserConfig(DataParserConfig):
     """Centring of the normalized frame."""
     auto_scale_poses: bool = True
     """Scale so that the largest absolute camera coordinate is 1 (splatfacto assumes a unit scene)."""
-    cache_dir: Optional[Path] = None
-    """Where downscaled images go; default ``$NAKA_GS_CACHE`` or ``~/.cache/naka-gs``."""
+
+    def __setstate__(self, state: dict) -> None:
+        """Runs saved while ``cache_dir`` was an option: every cache now lives in ``$NAKA_GS_CACHE``."""
+        if state.pop("cache_dir", None) is not None:
+            CONSOLE.log(
+                "[naka-gs] warning: this run's config names a dataparser cache-dir, retired: every cache lives "
+                "in $NAKA_GS_CACHE (default ~/.cache/naka-gs); set it to keep using that folder",
+                markup=False,
+            )
+        self.__dict__.update(state)
 
 
 def _fail(path: Path, problem: str, fix: str) -> LowLightDataError:
@@ -290,7 +298,7 @@ class LowLightDataParser(DataParser):
         factor = self.config.downscale_factor or auto_downscale(*frames.intrinsics[0, 4:6].tolist())
         images = frames.images
         if factor > 1 and has_gt:
-            images = [downscaled_copy(p, factor, self.config.cache_dir) for p in frames.images]
+            images = [downscaled_copy(p, factor) for p in frames.images]
 
         poses = transform.double() @ frames.poses
         poses[:, :3, 3] *= scale
@@ -339,14 +347,14 @@ def _check_sizes(frames: SplitFrames) -> None:
             )
 
 
-def downscaled_copy(path: Path, factor: int, cache_dir: Optional[Path] = None) -> Path:
-    """Path of ``path`` downscaled by ``factor`` (area filter) in the writable cache; made once.
+def downscaled_copy(path: Path, factor: int) -> Path:
+    """Path of ``path`` downscaled by ``factor`` (area filter) in the cache (``$NAKA_GS_CACHE``); made once.
 
     A cached copy that does not decode to the expected size (cut short, corrupted) is made again,
     with a warning; a new copy is written to a unique temporary name, checked, and renamed.
     """
     digest = hashlib.sha1(f"{path.resolve()}|{path.stat().st_mtime_ns}|{path.stat().st_size}".encode()).hexdigest()[:16]
-    folder = usable_cache_dir(cache_dir or default_cache_dir()) / "downscaled" / f"x{factor}"
+    folder = default_cache_dir() / "downscaled" / f"x{factor}"
     out = folder / f"{digest}_{path.stem}.png"
     with Image.open(path) as im:
         # Floor, as nerfstudio's Cameras.rescale_output_resolution does for the intrinsics.

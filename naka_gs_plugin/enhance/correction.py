@@ -101,7 +101,7 @@ MODES: Dict[str, InferenceMode] = {
 }
 DEFAULT_MODE: ModeName = "auto"
 """The datamanager's default: :func:`resolve_mode` picks ``lean`` where the CPU has native bfloat16,
-else ``lean-f32``. Measured with ``naka-gs-bench-correction`` and the shipped weights (docs/): each is
+else ``lean-f32``. Measured with ``python -m benchmarks.correction_speed`` and the shipped weights (docs/): each is
 the fastest mode on its kind of CPU that stays within 0.05 dB / 0.002 SSIM of ``exact`` on LOM test +
 LOL eval15."""
 

@@ -6,25 +6,23 @@ are far darker than normal-light photos. Like a camera's average metering, the s
 the mean luminance in linear light (sRGB-encoded to compare with pixel values), is brought to that of
 normal-light photos by one curve shared by every view (a per-view curve would give each view its own
 appearance). Scenes already at or above the target are left alone: a bright night scene is not darkened.
-Two curves (:data:`Curve`), both keeping black at 0 and the order of values:
-
-- ``gain``: what a longer exposure does, every linear value times one factor ``k >= 1``, with a soft
-  shoulder above :data:`KNEE` so highlights roll off to white instead of clipping. Contrast and the
-  blacks stay where the capture has them.
-- ``power``: ``y = x ** g`` with ``g <= 1`` on the sRGB values; it lifts shadows far more than mid-tones,
-  so the lifted views are flatter than a real exposure (blacks lifted towards grey).
+The curve is what a longer exposure does: every linear value times one factor ``k >= 1``, with a soft
+shoulder above :data:`KNEE` so highlights roll off to white instead of clipping; contrast and the blacks
+stay where the capture has them (a power curve on sRGB values, which flattens the views, lost on the LOM
+protocol: docs/real-scenes.md, Levers).
 
 Metering in linear light is what tells a dark-toned scene from an under-exposed one: a few bright areas
 (sky through foliage) carry a large share of the light, so a scene of dark leaves under a bright sky
 meters as exposed although its mean sRGB value is low. On LOM's normal-light photos the mean sRGB value
-ranges 0.36-0.54 between scenes and the metered level only 0.50-0.58 (docs/real-scenes.md).
+ranges 0.36-0.54 between scenes and the metered level only 0.50-0.58 (docs/real-scenes.md); metering the
+mean sRGB value instead lost on the protocol.
 
 Images are sRGB-encoded in [0, 1], channel-last ``[H, W, 3]``.
 """
 
 from __future__ import annotations
 
-from typing import Callable, List, Literal, Sequence
+from typing import List, Sequence
 
 import torch
 from jaxtyping import Float
@@ -34,36 +32,16 @@ METERED_TARGET = 0.505
 """Metered level (sRGB encoding of the mean linear luminance) of LOL's 500 normal-light photos (mean;
 s.d. 0.10, median 0.505): the exposure a normal photo of an indoor scene has."""
 
-MIDDLE_GREY = 0.4613
-"""sRGB encoding of 18 % linear reflectance: the target of ``mean`` metering (runs saved before the
-metering option existed)."""
-
-MIN_GAMMA = 0.2
-"""Strongest lift allowed: a nearly black scene (noise only) is not stretched into a grey wash."""
-
 MAX_GAIN = 16.0
-"""Strongest ``gain`` allowed (4 stops), for the same reason as :data:`MIN_GAMMA`."""
+"""Strongest gain allowed (4 stops): a nearly black scene (noise only) is not stretched into a grey wash."""
 
 KNEE = 0.8
 """Linear level above which ``gain`` compresses instead of clipping: ``knee + (1 - knee) (1 - exp(-(u -
 knee) / (1 - knee)))`` for ``u = k x > knee``, continuous with slope 1 at the knee and approaching 1 (a
 film-like shoulder); 0.8 linear is 0.91 in sRGB, so mid-tones are a pure gain."""
 
-Curve = Literal["gain", "power"]
-"""The exposure curve: ``gain`` (linear-light gain with a shoulder) or ``power`` (``x ** g`` on sRGB)."""
-
-Metering = Literal["luminance", "mean"]
-"""``luminance``: sRGB encoding of the mean Rec. 709 luminance in linear light (a camera's average
-metering); ``mean``: the mean sRGB value over every pixel and channel."""
-
 LUMA = (0.2126, 0.7152, 0.0722)
 """Rec. 709 / sRGB luminance weights of linear R, G, B."""
-
-
-def scene_mean(images: Sequence[Float[Tensor, "H W 3"]]) -> float:
-    """Mean over every pixel and channel of ``images`` (views may differ in size; each pixel weighs the same)."""
-    total = sum(float(im.sum(dtype=torch.float64)) for im in images)
-    return total / max(sum(im.numel() for im in images), 1)
 
 
 def _linear(srgb: Float[Tensor, "*batch 3"]) -> Float[Tensor, "*batch 3"]:
@@ -93,10 +71,9 @@ def _encode(linear: float) -> float:
     return float(_srgb(torch.full((1, 3), linear, dtype=torch.float64))[0, 0])
 
 
-def metered_level(images: Sequence[Float[Tensor, "H W 3"]], metering: Metering = "luminance") -> float:
-    """The scene's exposure as ``metering`` reads it, in sRGB [0, 1] (see :data:`Metering`)."""
-    if metering == "mean":
-        return scene_mean(images)
+def metered_level(images: Sequence[Float[Tensor, "H W 3"]]) -> float:
+    """The scene's exposure as a camera's average metering reads it: the sRGB encoding of the mean Rec. 709
+    luminance in linear light, in [0, 1]."""
     return _encode(_luminance(torch.cat([im.reshape(-1, 3) for im in images]).double().clamp(0.0, 1.0)))
 
 
@@ -105,75 +82,25 @@ def _sample(images: Sequence[Float[Tensor, "H W 3"]], stride: int) -> Float[Tens
     return torch.cat([im.reshape(-1, 3)[::stride] for im in images]).double().clamp(0.0, 1.0)
 
 
-def _goal(target: float, metering: Metering) -> float:
-    """``target`` in the units :func:`_level` compares: linear luminance, or the sRGB mean."""
+def lift_gain(images: Sequence[Float[Tensor, "H W 3"]], target: float = METERED_TARGET, stride: int = 7) -> float:
+    """The linear-light factor ``k`` in ``[1, MAX_GAIN]`` for which ``apply_gain(images, k)`` meters at
+    ``target`` (1 when the scene already meters at least ``target``). Bisection on every ``stride``-th pixel."""
     if not 0.0 < target < 1.0:
         raise ValueError(f"exposure target must be in (0, 1), got {target!r}")
-    if metering == "luminance":
-        return float(_linear(torch.full((1, 3), target))[0, 0])
-    if metering == "mean":
-        return target
-    raise ValueError(f"exposure metering must be luminance or mean, got {metering!r}")
-
-
-def _level(srgb: Float[Tensor, "N 3"], metering: Metering) -> float:
-    """The level of sRGB pixels in :func:`_goal`'s units (no sRGB encode per bisection step)."""
-    return _luminance(srgb) if metering == "luminance" else float(srgb.mean())
-
-
-def _bisect(level, weakest: float, strongest: float, goal: float) -> float:
-    """The curve parameter between ``weakest`` and ``strongest`` (either order) at which ``level``, monotone
-    from its value at ``weakest`` up to its value at ``strongest``, reaches ``goal``; ``strongest`` when even
-    that stays below."""
-    if level(strongest) <= goal:
+    goal = float(_linear(torch.full((1, 3), target))[0, 0])
+    sample = _sample(images, stride)
+    if sample.numel() == 0 or _luminance(sample) >= goal:
+        return 1.0
+    weakest, strongest = 1.0, MAX_GAIN
+    if _luminance(_gain(sample, strongest)) <= goal:
         return strongest
     for _ in range(40):
         mid = 0.5 * (weakest + strongest)
-        if level(mid) < goal:
+        if _luminance(_gain(sample, mid)) < goal:
             weakest = mid
         else:
             strongest = mid
     return 0.5 * (weakest + strongest)
-
-
-def _lift(
-    images: Sequence[Float[Tensor, "H W 3"]],
-    curve: Callable[[Tensor, float], Tensor],
-    weakest: float,
-    strongest: float,
-    target: float,
-    metering: Metering,
-    stride: int,
-) -> float:
-    """The parameter of ``curve(sample, parameter)`` between ``weakest`` (no change) and ``strongest`` at
-    which a strided sample of ``images`` meters at ``target``; ``weakest`` when it already does."""
-    goal = _goal(target, metering)
-    sample = _sample(images, stride)
-    if sample.numel() == 0 or _level(sample, metering) >= goal:
-        return weakest
-    return _bisect(lambda p: _level(curve(sample, p), metering), weakest, strongest, goal)
-
-
-def lift_gamma(
-    images: Sequence[Float[Tensor, "H W 3"]],
-    target: float = METERED_TARGET,
-    metering: Metering = "luminance",
-    stride: int = 7,
-) -> float:
-    """The exponent ``g`` in ``[MIN_GAMMA, 1]`` for which ``images ** g`` meter at ``target`` (1 when the
-    scene already meters at least ``target``). Bisection on a strided sample of the pixels."""
-    return _lift(images, torch.pow, 1.0, MIN_GAMMA, target, metering, stride)
-
-
-def lift_gain(
-    images: Sequence[Float[Tensor, "H W 3"]],
-    target: float = METERED_TARGET,
-    metering: Metering = "luminance",
-    stride: int = 7,
-) -> float:
-    """The linear-light factor ``k`` in ``[1, MAX_GAIN]`` for which ``apply_gain(images, k)`` meters at
-    ``target`` (1 when the scene already meters at least ``target``). Bisection on a strided sample."""
-    return _lift(images, _gain, 1.0, MAX_GAIN, target, metering, stride)
 
 
 def _shoulder(u: Tensor) -> Tensor:
@@ -193,33 +120,3 @@ def apply_gain(images: Sequence[Float[Tensor, "H W 3"]], gain: float) -> List[Fl
     if gain == 1.0:
         return list(images)
     return [_gain(im, gain) for im in images]
-
-
-def lift(
-    images: Sequence[Float[Tensor, "H W 3"]],
-    curve: Curve,
-    target: float = METERED_TARGET,
-    metering: Metering = "luminance",
-) -> float:
-    """The ``curve``'s parameter (``k`` for ``gain``, ``g`` for ``power``) that brings ``images`` to ``target``."""
-    if curve == "gain":
-        return lift_gain(images, target, metering)
-    if curve == "power":
-        return lift_gamma(images, target, metering)
-    raise ValueError(f"exposure curve must be gain or power, got {curve!r}")
-
-
-def apply_curve(images: Sequence[Float[Tensor, "H W 3"]], curve: Curve, value: float) -> List[Float[Tensor, "H W 3"]]:
-    """``curve`` with the parameter :func:`lift` chose."""
-    if curve == "gain":
-        return apply_gain(images, value)
-    if curve == "power":
-        return apply_gamma(images, value)
-    raise ValueError(f"exposure curve must be gain or power, got {curve!r}")
-
-
-def apply_gamma(images: Sequence[Float[Tensor, "H W 3"]], gamma: float) -> List[Float[Tensor, "H W 3"]]:
-    """``images ** gamma`` (clipped to [0, 1] first); the inputs themselves when ``gamma == 1``."""
-    if gamma == 1.0:
-        return list(images)
-    return [im.clamp(0.0, 1.0).pow(gamma) for im in images]

@@ -1,10 +1,9 @@
 """Naka-Rushton pre-enhancement (paper Sec. 3.1; reference: ``naka_color_correction.py``).
 
 Per pixel and per channel the response is ``R = I^n / (I^n + sigma^n)`` (sigma 0.05, n 1 in the
-reference), followed by a linear min-max stretch to [0, 1]. The reference takes the stretch's
-minimum and maximum over one image (all pixels and channels jointly); ``stats="scene"`` pools them
-over every training view instead, so every view gets the same tone curve (the cross-view photometric
-consistency the paper asks for).
+reference), followed by a linear min-max stretch to [0, 1] whose minimum and maximum are taken over one
+image (all pixels and channels jointly), as in the reference (pooling them over the scene's views was no
+better on the LOM protocol: docs/real-scenes.md, Levers).
 
 Images are sRGB-encoded values in [0, 1], channel-last ``[..., H, W, 3]`` (nerfstudio's layout).
 Everything here is batched, differentiable and finite everywhere, including black, constant and
@@ -13,7 +12,7 @@ saturated frames where the stretch has zero range (the reference then returns al
 
 from __future__ import annotations
 
-from typing import Literal, Tuple
+from typing import Tuple
 
 import torch
 from jaxtyping import Float
@@ -59,20 +58,8 @@ def linear_stretch(
 
 
 def naka_enhance(
-    images: Float[Tensor, "*batch H W C"],
-    sigma: float = 0.05,
-    n: float = 1.0,
-    stats: Literal["image", "scene"] = "image",
+    images: Float[Tensor, "*batch H W C"], sigma: float = 0.05, n: float = 1.0
 ) -> Float[Tensor, "*batch H W C"]:
-    """Naka-Rushton response then min-max stretch, with per-image or pooled (per-batch) statistics.
-
-    With ``stats="scene"`` the batch is taken to be the whole scene: one ``lo``/``hi`` for all of it.
-    For scenes whose views differ in size use :class:`naka_gs_plugin.enhance.pipeline.Enhancer`.
-    """
+    """Naka-Rushton response then min-max stretch, with each image's own statistics."""
     response = naka_rushton(images, sigma, n)
-    lo, hi = stretch_stats(response)
-    if stats == "scene":
-        lo, hi = lo.amin().expand_as(lo), hi.amax().expand_as(hi)
-    elif stats != "image":
-        raise ValueError(f"stats must be 'image' or 'scene', got {stats!r}")
-    return linear_stretch(response, lo, hi)
+    return linear_stretch(response, *stretch_stats(response))

@@ -17,10 +17,11 @@ import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List, Literal, Optional, Sequence, Type, Union
+from typing import Any, Dict, List, Literal, Optional, Sequence, Tuple, Type, Union
 
 import numpy as np
 import torch
+import tyro
 from jaxtyping import Float, UInt8
 from nerfstudio.configs.base_config import InstantiateConfig
 from nerfstudio.utils.rich_utils import CONSOLE
@@ -28,15 +29,14 @@ from torch import Tensor
 
 from naka_gs_plugin.cpu import fit_threads
 from naka_gs_plugin.data.cache import content_hash, default_cache_dir
-from naka_gs_plugin.data.safe_io import atomic_write, usable_cache_dir
+from naka_gs_plugin.data.safe_io import atomic_write
 from naka_gs_plugin.enhance.chroma import DEFAULT_BLUR
 from naka_gs_plugin.enhance.correction import DEFAULT_MODE, DEFAULT_WEIGHTS, ModeName, resolve_mode
-from naka_gs_plugin.enhance.exposure import METERED_TARGET, Curve, Metering
+from naka_gs_plugin.enhance.exposure import METERED_TARGET
 from naka_gs_plugin.enhance.stages import (
-    CaptureChromaStage,
+    CHAIN,
     CorrectionStage,
     ExposureStage,
-    NakaStage,
     SceneStage,
     ViewStage,
     to_float01,
@@ -47,49 +47,47 @@ CACHE_VERSION = 1
 """Bump when the enhancement maths change, so stale cache entries are never read."""
 
 
+RETIRED: Dict[str, Tuple[Any, str]] = {
+    "stats": ("image", "each view's own stretch runs (scene-pooled statistics were no better)"),
+    "chroma": ("capture", "the capture's chromaticity runs (the network's own colour lost to it)"),
+    "exposure_curve": ("gain", "the linear-light gain runs (the sRGB power curve lost to it)"),
+    "exposure_metering": ("luminance", "linear-luminance metering runs (mean sRGB metering lost to it)"),
+    "cache_dir": (None, "every cache lives in $NAKA_GS_CACHE: set it to keep using that folder"),
+}
+"""Options removed from :class:`EnhanceConfig`: the value that behaves as today, and what runs instead
+(each measurement: docs/real-scenes.md, Levers)."""
+LEGACY_DEFAULTS = {"chroma": "network", "exposure_metering": "mean", "exposure_curve": "power"}
+"""What runs saved before an option existed did (their ``config.yml`` lacks the key)."""
+
+
 @dataclass
 class EnhanceConfig(InstantiateConfig):
     """Train-image enhancement. CLI: ``--pipeline.datamanager.enhance.sigma 0.05`` and so on."""
 
     _target: Type = field(default_factory=lambda: Enhancer)
     method: Literal["naka", "none"] = "naka"
-    """``naka``: Naka-Rushton response + min-max stretch; ``none``: train on the raw images (baseline)."""
+    """``naka``: Naka-Rushton response + min-max stretch, the correction network, the capture's
+    chromaticity and the scene exposure; ``none``: train on the raw images (baseline)."""
     sigma: Union[float, Literal["auto"]] = 0.05
     """Naka-Rushton semi-saturation constant, in [0, 1] sRGB image units (reference: 0.05), or ``auto``:
     the mean sRGB value of the scene's training views (all pixels and channels), so that the scene's
     mean maps to half the response, as the retina's adaptation does -- LOM and LOL captures average
     about 0.05 (the reference value), RealX3D's about 0.02."""
-    n: float = 1.0
+    n: tyro.conf.Suppress[float] = 1.0
     """Naka-Rushton exponent (reference: 1)."""
-    stats: Literal["image", "scene"] = "image"
-    """Min-max stretch statistics: per image (the reference) or pooled over all training views."""
-    cache_dir: Optional[Path] = None
-    """Where enhanced images are cached; default ``$NAKA_GS_CACHE`` or ``~/.cache/naka-gs``."""
     use_cache: bool = True
-    """Read and write the on-disk cache of enhanced images."""
+    """Read and write the on-disk cache of enhanced images (in ``$NAKA_GS_CACHE``, default ``~/.cache/naka-gs``)."""
     correction: str = "default"
     """Correction network applied after Naka (method ``naka`` only): ``none``, ``default`` (the weights
     shipped in ``naka_gs_plugin/enhance/weights/``) or the path of a checkpoint (ours or the authors')."""
-    chroma: Literal["capture", "network"] = "capture"
-    """Colour of the enhanced views (method ``naka``; :mod:`naka_gs_plugin.enhance.chroma`): ``capture``
-    keeps the enhanced brightness and takes each pixel's chromaticity (linear RGB) from the dark capture,
-    which a shorter exposure does not change; ``network`` keeps the colour Naka + the correction network give."""
-    chroma_blur: float = DEFAULT_BLUR
-    """Gaussian low-pass, in pixels, on the capture before its chromaticity is taken (``chroma capture``):
-    a dark capture's colour is noise at the pixel scale."""
+    chroma_blur: tyro.conf.Suppress[float] = DEFAULT_BLUR
+    """Gaussian low-pass, in pixels, on the capture before its chromaticity is taken
+    (:mod:`naka_gs_plugin.enhance.chroma`): a dark capture's colour is noise at the pixel scale."""
     exposure: Union[float, Literal["none"]] = METERED_TARGET
     """Scene exposure after the correction network (:mod:`naka_gs_plugin.enhance.exposure`): when the
-    enhanced views meter below this sRGB level, one curve (``exposure_curve``) shared by every view lifts
-    them there (default 0.505, the metered level of normal-light photos); ``none`` keeps the network's
-    exposure. Applied after the cache."""
-    exposure_curve: Curve = "gain"
-    """The curve ``exposure`` lifts with: ``gain``, every linear value times one factor with a highlight
-    shoulder (a longer exposure: blacks and contrast kept), or ``power``, ``x ** g`` on the sRGB values
-    (lifts shadows most, flattening the views; worse on the LOM protocol, docs/real-scenes.md)."""
-    exposure_metering: Metering = "luminance"
-    """How ``exposure`` reads a scene's level: ``luminance``, the mean luminance in linear light, as a
-    camera meters (a dark-toned scene with bright areas is not lifted as if under-exposed), or ``mean``,
-    the mean sRGB value."""
+    enhanced views meter below this sRGB level (mean luminance in linear light, as a camera meters), one
+    linear-light gain shared by every view lifts them there (default 0.505, the metered level of
+    normal-light photos); ``none`` keeps the network's exposure. Applied after the cache."""
     correction_mode: ModeName = DEFAULT_MODE
     """Correction inference mode (``naka_gs_plugin.enhance.correction.MODES``): ``auto`` picks the fastest
     one that keeps the quality bar: when training on CUDA ``exact`` on that GPU, else on this CPU ``lean``
@@ -97,11 +95,16 @@ class EnhanceConfig(InstantiateConfig):
     GPU when training there; every other mode runs on the CPU)."""
 
     def __setstate__(self, state: dict) -> None:
-        """Runs saved before ``chroma`` or ``exposure_metering`` existed trained on the network's colour and
-        on the mean sRGB metering: their ``config.yml`` keeps both."""
-        state.setdefault("chroma", "network")
-        state.setdefault("exposure_metering", "mean")
-        state.setdefault("exposure_curve", "power")
+        """A saved run's ``config.yml`` may name options retired since (:data:`RETIRED`): each one that asked
+        for something other than what runs now is dropped with one warning."""
+        if state.keys() & RETIRED.keys():  # saved before the retirement (a config saved since has none)
+            for option, (now, why) in RETIRED.items():
+                asked = state.pop(option, LEGACY_DEFAULTS.get(option))
+                if asked is not None and asked != now:
+                    CONSOLE.log(
+                        f"[naka-gs] warning: this run's config asks for enhance.{option} {asked!r}, retired: {why}",
+                        markup=False,
+                    )
         self.__dict__.update(state)
 
     def correction_path(self) -> Optional[Path]:
@@ -120,7 +123,7 @@ class Enhancer:
         self.cache_dir: Optional[Path] = None
         """Where enhanced images are cached; None with ``use_cache False`` (no cache is touched)."""
         if config.use_cache:
-            self.cache_dir = usable_cache_dir(config.cache_dir or default_cache_dir()) / "enhanced"
+            self.cache_dir = default_cache_dir() / "enhanced"
         self._cache_warned = False
         self.last_run = {"computed": 0, "cached": 0, "seconds": 0.0}
         """Counts of the last :meth:`enhance_images` call: images computed vs read from cache."""
@@ -131,20 +134,6 @@ class Enhancer:
         if config.exposure != "none" and not (isinstance(config.exposure, (int, float)) and 0 < config.exposure < 1):
             raise ValueError(
                 f"--pipeline.datamanager.enhance.exposure must be in (0, 1) or none, got {config.exposure!r} (default {METERED_TARGET})"
-            )
-        if config.exposure_metering not in ("luminance", "mean"):
-            raise ValueError(
-                "--pipeline.datamanager.enhance.exposure-metering must be luminance or mean, "
-                f"got {config.exposure_metering!r} (default luminance)"
-            )
-        if config.exposure_curve not in ("gain", "power"):
-            raise ValueError(
-                "--pipeline.datamanager.enhance.exposure-curve must be gain or power, "
-                f"got {config.exposure_curve!r} (default gain)"
-            )
-        if config.chroma not in ("capture", "network"):
-            raise ValueError(
-                f"--pipeline.datamanager.enhance.chroma must be capture or network, got {config.chroma!r} (default capture)"
             )
         if not (isinstance(config.chroma_blur, (int, float)) and config.chroma_blur > 0):
             raise ValueError(
@@ -173,22 +162,13 @@ class Enhancer:
         """Applied to each view, in order, before the cache."""
         self.scene_stages: List[SceneStage] = []
         """Applied to the whole scene's views, in order, after the cache."""
-        self.correction: Optional[CorrectionStage] = None
-        if config.method == "naka":
-            self.view_stages.append(NakaStage(sigma=config.sigma, n=config.n, stats=config.stats))
-            if self.correction_path is not None:
-                self.correction = CorrectionStage.from_file(
-                    self.correction_path, self.correction_mode, self.correction_device
-                )
-                self.view_stages.append(self.correction)
-            if config.chroma == "capture":
-                self.view_stages.append(CaptureChromaStage(blur=config.chroma_blur))
-            if config.exposure != "none":
-                self.scene_stages.append(
-                    ExposureStage(
-                        target=config.exposure, curve=config.exposure_curve, metering=config.exposure_metering
-                    )
-                )
+        for stage_type in CHAIN:
+            stage = stage_type.build(config, self)
+            if stage is not None:
+                (self.view_stages if isinstance(stage, ViewStage) else self.scene_stages).append(stage)
+        self.correction: Optional[CorrectionStage] = next(
+            (stage for stage in self.view_stages if isinstance(stage, CorrectionStage)), None
+        )
 
     def key(self) -> str:
         """The parameter part of the cache key: every cached stage's :meth:`~Stage.key`, as JSON."""
@@ -279,18 +259,12 @@ class Enhancer:
             "cached": len(images) - len(todo),
             "seconds": total,
             **{f"{name}_seconds": s for name, s in seconds.items()},
-            "exposure_curve": self.config.exposure_curve,
-            "exposure_value": value,
+            "exposure_gain": value,
         }
         CONSOLE.log(
             f"[naka-gs] {description}: {len(images)} images, {len(todo)} computed, "
             f"{len(images) - len(todo)} from cache ({self.cache_dir or 'cache off'}) in {total:.2f} s"
-            + (
-                f", exposure lifted to {exposure.target} ({exposure.metering} metering, "
-                f"{'gain' if exposure.curve == 'gain' else 'gamma'} {value:.3f})"
-                if value != 1.0
-                else ""
-            ),
+            + (f", exposure lifted to {exposure.target} (linear-light gain {value:.3f})" if value != 1.0 else ""),
             markup=False,
         )
         return done

@@ -17,7 +17,7 @@ import abc
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar, Dict, List, Literal, Optional, Sequence, Tuple, Union
+from typing import Any, ClassVar, Dict, List, Literal, Optional, Sequence, Tuple, Type, Union
 
 import torch
 from jaxtyping import Float
@@ -25,7 +25,7 @@ from torch import Tensor
 
 from naka_gs_plugin.enhance.chroma import capture_chroma
 from naka_gs_plugin.enhance.correction import CorrectionRunner, file_digest, load_correction
-from naka_gs_plugin.enhance.exposure import Curve, Metering, apply_curve, lift
+from naka_gs_plugin.enhance.exposure import apply_gain, lift_gain
 from naka_gs_plugin.enhance.naka import linear_stretch, naka_rushton, stretch_stats
 
 SIGMA_FLOOR = 1e-3
@@ -58,6 +58,12 @@ class Stage:
     """One step of the enhancement; subclasses are dataclasses and set :attr:`name`."""
 
     name: ClassVar[str]
+
+    @classmethod
+    @abc.abstractmethod
+    def build(cls, config: Any, enhancer: Any) -> Optional["Stage"]:
+        """This stage as an :class:`~naka_gs_plugin.enhance.pipeline.EnhanceConfig` asks for it, or ``None``
+        when the config leaves it out (``enhancer``: the resolved weights, inference mode and device)."""
 
     def key(self) -> Dict[str, Any]:
         """Everything that changes this stage's output: its name and every field not marked :func:`runtime`."""
@@ -102,30 +108,27 @@ class NakaStage(ViewStage):
     name: ClassVar[str] = "naka"
     sigma: Union[float, Literal["auto"]] = 0.05
     n: float = 1.0
-    stats: Literal["image", "scene"] = "image"
     _sigma: Optional[float] = runtime(default=None, init=False)
-    _scene_range: Optional[Tuple[Tensor, Tensor]] = runtime(default=None, init=False)
+
+    @classmethod
+    def build(cls, config: Any, enhancer: Any) -> Optional["NakaStage"]:
+        return cls(sigma=config.sigma, n=config.n) if config.method == "naka" else None
 
     def scene_wide(self) -> bool:
-        return self.sigma == "auto" or self.stats == "scene"
+        return self.sigma == "auto"
 
     def prepare(self, lows: Sequence[Tensor]) -> None:
         self._sigma = scene_sigma(lows) if self.sigma == "auto" else float(self.sigma)
-        if self.stats == "scene":
-            ranges = [stretch_stats(naka_rushton(to_float01(im), self._sigma, self.n)) for im in lows]
-            los, his = zip(*ranges)
-            self._scene_range = (torch.stack(los).amin(), torch.stack(his).amax())
 
     def apply(self, image: Float[Tensor, "H W 3"], low: Float[Tensor, "H W 3"]) -> Float[Tensor, "H W 3"]:
         if self._sigma is None:
             raise RuntimeError("NakaStage.prepare must run before apply")
         response = naka_rushton(low, self._sigma, self.n)
-        lo, hi = self._scene_range if self._scene_range is not None else stretch_stats(response)
-        return linear_stretch(response, lo, hi)
+        return linear_stretch(response, *stretch_stats(response))
 
     def describe(self) -> str:
         sigma = f"{self._sigma:.4g}" if self._sigma is not None else str(self.sigma)
-        return f"naka, sigma {sigma}, {self.stats} stats"
+        return f"naka, sigma {sigma}"
 
 
 @dataclass
@@ -145,6 +148,12 @@ class CorrectionStage(ViewStage):
     @classmethod
     def from_file(cls, path: Path, mode: str, device: torch.device) -> "CorrectionStage":
         return cls(weights_sha1=file_digest(path), mode=mode, path=Path(path), device=device)
+
+    @classmethod
+    def build(cls, config: Any, enhancer: Any) -> Optional["CorrectionStage"]:
+        if config.method != "naka" or enhancer.correction_path is None:
+            return None
+        return cls.from_file(enhancer.correction_path, enhancer.correction_mode, enhancer.correction_device)
 
     def runner(self) -> CorrectionRunner:
         """The network, loaded on first use."""
@@ -170,6 +179,10 @@ class CaptureChromaStage(ViewStage):
     name: ClassVar[str] = "chroma"
     blur: float = 3.0
 
+    @classmethod
+    def build(cls, config: Any, enhancer: Any) -> Optional["CaptureChromaStage"]:
+        return cls(blur=config.chroma_blur) if config.method == "naka" else None
+
     def apply(self, image: Float[Tensor, "H W 3"], low: Float[Tensor, "H W 3"]) -> Float[Tensor, "H W 3"]:
         return capture_chroma(image, low, self.blur)
 
@@ -179,17 +192,24 @@ class CaptureChromaStage(ViewStage):
 
 @dataclass
 class ExposureStage(SceneStage):
-    """One curve shared by every view lifts the scene's metered level to ``target`` when it is below it
-    (:mod:`naka_gs_plugin.enhance.exposure`); after the cache, as it needs the whole scene."""
+    """One linear-light gain shared by every view lifts the scene's metered level to ``target`` when it is
+    below it (:mod:`naka_gs_plugin.enhance.exposure`); after the cache, as it needs the whole scene."""
 
     name: ClassVar[str] = "exposure"
     target: float = 0.505
-    curve: Curve = "gain"
-    metering: Metering = "luminance"
     value: float = runtime(default=1.0, init=False)
-    """The curve's parameter the last :meth:`apply_all` chose (1: the scene was left alone)."""
+    """The gain the last :meth:`apply_all` chose (1: the scene was left alone)."""
+
+    @classmethod
+    def build(cls, config: Any, enhancer: Any) -> Optional["ExposureStage"]:
+        return cls(target=config.exposure) if config.method == "naka" and config.exposure != "none" else None
 
     def apply_all(self, images: List[Float[Tensor, "H W 3"]]) -> List[Float[Tensor, "H W 3"]]:
-        """Every view of the scene, lifted by one curve (unchanged when the scene meters at ``target`` or above)."""
-        self.value = lift(images, self.curve, float(self.target), self.metering)
-        return images if self.value == 1.0 else apply_curve(images, self.curve, self.value)
+        """Every view of the scene, lifted by one gain (unchanged when the scene meters at ``target`` or above)."""
+        self.value = lift_gain(images, float(self.target))
+        return images if self.value == 1.0 else apply_gain(images, self.value)
+
+
+CHAIN: Tuple[Type[Stage], ...] = (NakaStage, CorrectionStage, CaptureChromaStage, ExposureStage)
+"""The enhancement, in order: each stage's :meth:`Stage.build` decides from the config whether it runs. A new
+stage is a class here (with ``build``) plus the config field it reads."""

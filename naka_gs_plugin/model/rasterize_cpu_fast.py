@@ -535,7 +535,7 @@ STAGE_SECONDS: Optional[Dict[str, float]] = None
 @contextmanager
 def profile_stages() -> Iterator[Dict[str, float]]:
     """Collect wall seconds per stage ("sort+bin", "forward kernel", "backward kernel",
-    "reduce+scatter") of the renders inside the block (used by ``naka-gs-bench-raster``)."""
+    "reduce+scatter") of the renders inside the block (used by ``python -m benchmarks.rasterizer``)."""
     global STAGE_SECONDS
     STAGE_SECONDS = {}
     try:

@@ -19,6 +19,7 @@ from typing import Any, Callable, Dict, List, Literal, Optional, Tuple
 
 import numpy as np
 import torch
+import tyro
 from jaxtyping import Float, UInt8
 from nerfstudio.utils.rich_utils import CONSOLE
 
@@ -77,6 +78,15 @@ class PointInitConfig(PPMSettings):
     triangulate: bool = True
     """In ``auto``, triangulate from the enhanced training views when the scene has no points
     (False: go straight to random init)."""
+    # PPM's internals keep the authors' values under ns-train: hidden from its --help, still set by a run's
+    # config.yml (``ns-train naka-gs --load-config``) or a benchmark grid; naka-gs-ppm shows them all.
+    voxel_size: tyro.conf.Suppress[float] = VOXEL
+    tau0: tyro.conf.Suppress[float] = TAU0
+    beta: tyro.conf.Suppress[float] = BETA
+    iterations: tyro.conf.Suppress[int] = ITERATIONS
+    min_points: tyro.conf.Suppress[int] = MIN_POINTS
+    tau_update: tyro.conf.Suppress[Literal["reference", "paper"]] = "reference"
+    seed: tyro.conf.Suppress[int] = SEED
 
 
 @dataclass

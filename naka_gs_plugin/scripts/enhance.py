@@ -35,7 +35,6 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 
 from naka_gs_plugin.data.images import ImageReadError, read_rgb
-from naka_gs_plugin.data.lowlight_datamanager import LowLightDatamanagerConfig
 from naka_gs_plugin.data.lowlight_dataparser import LowLightDataError, LowLightDataParserConfig, read_split
 from naka_gs_plugin.data.safe_io import (
     UnsafeOutputError,
@@ -44,6 +43,7 @@ from naka_gs_plugin.data.safe_io import (
     publish_dir,
     staging_dir,
 )
+from naka_gs_plugin.datamanager import LowLightDatamanagerConfig
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
 from naka_gs_plugin.sheet import contact_sheet
 

@@ -303,7 +303,7 @@ class ProcessData:
         """Enhanced 8-bit PNG of every source image in ``folder``; checks readability and equal sizes.
         Returns the correction checkpoint used (None: Naka only or no enhancement)."""
         enhancer = self._enhancer()
-        chunk = ENHANCE_CHUNK if self.enhance.stats == "image" else len(sources)
+        chunk = ENHANCE_CHUNK if not any(stage.scene_wide() for stage in enhancer.view_stages) else len(sources)
         size: Optional[Tuple[int, int]] = None
         for start in range(0, len(sources), chunk):
             batch = []

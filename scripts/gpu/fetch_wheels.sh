@@ -16,7 +16,7 @@ WHEELS=(
   pytest==9.2.0 pluggy==1.7.0 iniconfig==2.3.1 packaging==26.3
 )
 # `run.sh train` (nerfstudio's trainer on the GPU): nerfstudio and what its import path and ours need
-# beyond the GPU image's packages (found by tracing the imports of a naka-gs-bench run), except
+# beyond the GPU image's packages (found by tracing the imports of a python -m benchmarks.grid run), except
 # pycolmap (38 MB: prepare_train.sh turns the COLMAP model into a PLY instead).
 TRAIN_WHEELS=(
   nerfstudio==1.1.5 viser==0.2.7 nerfacc==0.5.2 rawpy==0.28.0 msgspec==0.22.0 pyquaternion==0.9.9

@@ -94,8 +94,8 @@ step_parity() {
   local ckpt=()
   if [ -n "${NAKA_GS_PARITY_CKPT:-}" ]; then ckpt=(--checkpoint "$NAKA_GS_PARITY_CKPT" --max-gaussians 200000); fi
   # The saved reference (inputs + gsplat outputs) lets cpu-fast be compared on a CPU afterwards:
-  # python -m naka_gs_plugin.scripts.cuda_parity --reference-file .../gsplat_reference.pt
-  "$PY" -m naka_gs_plugin.scripts.cuda_parity --reference gsplat "${ckpt[@]}" \
+  # python -m benchmarks.cuda_parity --reference-file .../gsplat_reference.pt
+  "$PY" -m benchmarks.cuda_parity --reference gsplat "${ckpt[@]}" \
     --out-dir "$OUT/parity" --save-reference "$OUT/parity/gsplat_reference.pt"
 }
 
@@ -105,7 +105,7 @@ step_tests() {
 }
 
 step_timing() {
-  "$PY" -m naka_gs_plugin.scripts.cuda_parity --mode timing --out-dir "$OUT/timing"
+  "$PY" -m benchmarks.cuda_parity --mode timing --out-dir "$OUT/timing"
 }
 
 step_train() {
@@ -116,7 +116,7 @@ step_train() {
   local grid=${GRID:-scripts/gpu/cuda-vs-cpu.yaml} rc=0
   local name
   name=$(basename "$grid" .yaml)
-  MPLBACKEND=Agg timeout "${TRAIN_LIMIT_S:-480}" "$PY" -m naka_gs_plugin.scripts.bench "$grid" --out "$OUT/$name" || rc=$?
+  MPLBACKEND=Agg timeout "${TRAIN_LIMIT_S:-480}" "$PY" -m benchmarks.grid "$grid" --out "$OUT/$name" || rc=$?
   # The grid records a failed run and carries on; here a failed run fails the step.
   "$PY" -c "import json, sys; r = json.load(open(sys.argv[1]))['runs']; bad = [k for k, v in r.items() if v['status'] != 'ok']; print('failed runs:', bad) if bad else None; sys.exit(bool(bad))" "$OUT/$name/results.json" || rc=1
   # The run folder as one archive (no checkpoint): one file to copy back.

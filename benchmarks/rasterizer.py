@@ -1,7 +1,7 @@
 """Benchmark the CPU rasterizers: compiled cpu-fast vs our torch path vs the dense reference.
 
 Every case (method x Gaussians x resolution x threads) runs in a fresh spawned process, so each
-one's peak memory is its own (:mod:`naka_gs_plugin.bench.harness`): "peak MB" is the kernel's peak
+one's peak memory is its own (:mod:`benchmarks.harness`): "peak MB" is the kernel's peak
 resident set size of the process (``VmHWM``, reset just before the first render) minus its
 resident size at that moment, i.e. the extra host memory the renders (forward and backward,
 including allocator caches) needed at their peak. On CUDA it is
@@ -30,6 +30,8 @@ Gaussian-pixel pairs with ``alpha >= 1/255`` inside the radius boxes.
 Also reported: the viewer's frame time (``NakaGSModel.get_outputs`` under ``torch.no_grad``, eval
 mode, so RGB + expected depth as the viewer renders) and a profile of one forward+backward of
 cpu-fast split into projection, SH colours, sort+bin, the two kernels and the rest.
+
+Run from the repository root: ``python -m benchmarks.rasterizer --help``.
 """
 
 from __future__ import annotations
@@ -41,15 +43,17 @@ import os
 import statistics
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, List, Optional, Tuple
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import torch
+import tyro
 from rich.console import Console
 from rich.table import Table
 
-from naka_gs_plugin.bench.harness import peak_rss, reset_peak_rss, run_isolated
-from naka_gs_plugin.bench.machine import describe_cpu
+from benchmarks.harness import peak_rss, reset_peak_rss, run_isolated
+from benchmarks.machine import describe_cpu
 
 SH_DEGREE = 3
 FOV_X_DEG = 60.0
@@ -448,3 +452,25 @@ def report(cfg: BenchConfig) -> None:
             **results,
         }
         cfg.out_json.write_text(json.dumps(payload, indent=2))
+
+
+@dataclass
+class BenchRaster(BenchConfig):
+    """cpu-fast vs torch vs dense rasterizer: timing (forward, forward+backward), peak memory,
+    thread scaling, viewer frame time, cpu-fast compile time and a stage profile."""
+
+    def main(self) -> None:
+        if self.dense_budget < 0:
+            raise SystemExit(
+                f"python -m benchmarks.rasterizer: --dense-budget must be >= 0 (0 skips the dense reference), got {self.dense_budget}"
+            )
+        report(self)
+
+
+def entrypoint(args: Optional[Sequence[str]] = None) -> None:
+    """``python -m benchmarks.rasterizer``."""
+    tyro.cli(BenchRaster, args=args).main()
+
+
+if __name__ == "__main__":
+    entrypoint()

@@ -2,11 +2,13 @@
 
 Cloud (x ``--scale``): 700k points on the surface z = 0.1 sin(3x) over [-1, 1]^2, 250k in a
 sigma = 0.002 cluster and 50k uniform outliers in [-3, 3]^3, seed 0, shuffled. Each (implementation,
-size) runs in a fresh process so its peak RSS is its own (:mod:`naka_gs_plugin.bench.harness`); the
+size) runs in a fresh process so its peak RSS is its own (:mod:`benchmarks.harness`); the
 figure printed is the increase caused by the PPM call (input generation excluded). The reference, :func:`reference_ppm`,
 is the authors' algorithm as documented (``method-facts.md`` section 5) written the plain NumPy /
 SciPy way: ``np.unique`` voxel keys, ``np.add.at`` sums, a fresh ``cKDTree`` every iteration. Both
 produce the same points (checked); the printed ratio is measured here, on this CPU.
+
+Run from the repository root: ``python -m benchmarks.ppm --help``.
 """
 
 from __future__ import annotations
@@ -14,12 +16,14 @@ from __future__ import annotations
 import math
 import os
 import time
-from typing import Sequence, Tuple
+from dataclasses import dataclass
+from typing import Optional, Sequence, Tuple
 
 import numpy as np
+import tyro
 
-from naka_gs_plugin.bench.harness import peak_rss, reset_peak_rss, run_isolated
-from naka_gs_plugin.bench.machine import describe_cpu
+from benchmarks.harness import peak_rss, reset_peak_rss, run_isolated
+from benchmarks.machine import describe_cpu
 
 
 def make_cloud(scale: int, seed: int = 0) -> Tuple[np.ndarray, np.ndarray]:
@@ -121,3 +125,25 @@ def compare(scales: Sequence[int], reference: bool) -> None:
                 f"ours {ref['seconds'] / r['seconds']:.1f}x faster ({same})"
             )
         print(f"{line}; load {r['load_average']:.2f}", flush=True)
+
+
+@dataclass
+class BenchPpm:
+    """Time our PPM and the plain reference on the 1M / 6M benchmark clouds, each in a fresh process."""
+
+    scales: Tuple[int, ...] = (1, 6)
+    """Cloud sizes in millions of points."""
+    reference: bool = True
+    """Also run the plain re-implementation of the authors' PPM (the ratio's denominator)."""
+
+    def main(self) -> None:
+        compare(self.scales, self.reference)
+
+
+def entrypoint(args: Optional[Sequence[str]] = None) -> None:
+    """``python -m benchmarks.ppm``."""
+    tyro.cli(BenchPpm, args=args).main()
+
+
+if __name__ == "__main__":
+    entrypoint()

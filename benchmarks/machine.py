@@ -1,7 +1,7 @@
 """What a benchmark ran on: the CPU, the kernels PyTorch and oneDNN use there, the thread count.
 
 Every bench prints :func:`describe_cpu` first, since ratios between code paths differ between CPU
-kinds (e.g. bfloat16 is fast only with native support; see ``naka-gs-bench-correction``).
+kinds (e.g. bfloat16 is fast only with native support; see ``python -m benchmarks.correction_speed``).
 """
 
 from __future__ import annotations

@@ -19,11 +19,13 @@ outside that box ``alpha <= 0.0111 * opacity``, below 1/255 for those opacities.
 variants both composite exactly the same pairs and any difference beyond float32 rounding is a bug.
 
 ``timing`` measures forward and forward+backward at the CPU benchmark's sizes
-(:mod:`naka_gs_plugin.bench.rasterizer_bench`, same scenes and loss) and divides the 2-core CPU's
-figures (a ``naka-gs-bench-raster --out-json`` file) by them.
+(:mod:`benchmarks.rasterizer`, same scenes and loss) and divides the 2-core CPU's
+figures (a ``python -m benchmarks.rasterizer --out-json`` file) by them.
 
 Imports only torch, numpy, jaxtyping, tyro and rich (and gsplat / numba when used): runs on a GPU
 machine without nerfstudio.
+
+Run from the repository root: ``python -m benchmarks.cuda_parity --help``.
 """
 
 from __future__ import annotations
@@ -34,10 +36,12 @@ import math
 import platform
 import statistics
 import time
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Dict, Literal, Optional, Tuple
+from typing import Callable, Dict, Literal, Optional, Sequence, Tuple
 
 import torch
+import tyro
 from jaxtyping import Float
 from torch import Tensor
 
@@ -51,7 +55,7 @@ TOLERANCE = {"forward": 2e-4, "gradient": 1e-3}
 conic can move one pair across the 1e-4 transmittance stop, changing that pixel by up to 1e-4 times
 its colour (seen between torch and cpu-fast on a trained scene). Gradients: summed over pixels in
 another order (gsplat with float32 atomics and ``--use_fast_math``)."""
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[1]
 
 Scene = Dict[str, object]
 """rasterization's keyword inputs: means [N,3], quats [N,4] (wxyz), scales [N,3] (exp'ed),
@@ -336,7 +340,7 @@ class ParityConfig:
     timing_repeats: int = 5
     """timing: timed repetitions after one warm-up; the median is reported."""
     cpu_baseline: Path = REPO / "scripts" / "gpu" / "cpu_baseline.json"
-    """timing: ``naka-gs-bench-raster --out-json`` results of the 2-core CPU (ratios are CPU / GPU)."""
+    """timing: ``python -m benchmarks.rasterizer --out-json`` results of the 2-core CPU (ratios are CPU / GPU)."""
 
     def resolved_reference(self) -> str:
         if self.reference == "auto":
@@ -396,7 +400,7 @@ def versions() -> Dict[str, str]:
     if torch.cuda.is_available():
         info["gpu"] = torch.cuda.get_device_name(0)
         info["cuda"] = str(torch.version.cuda)
-    from naka_gs_plugin.bench.machine import cpu_model
+    from benchmarks.machine import cpu_model
 
     info["cpu"] = cpu_model()
     return info
@@ -486,7 +490,7 @@ def _sync(device: str) -> None:
 def time_fwd_bwd(render: Renderer, scene: Dict[str, Tensor], width: int, height: int, repeats: int, device: str):
     """Median forward and forward+backward seconds of ``repeats`` renders after one warm-up (the CPU
     benchmark's loss: mean squared colour + mean alpha, SH degree 3)."""
-    from naka_gs_plugin.bench.rasterizer_bench import SH_DEGREE
+    from benchmarks.rasterizer import SH_DEGREE
 
     fwd, total = [], []
     for _ in range(repeats + 1):
@@ -513,7 +517,7 @@ TIMING_METHODS = {
 
 def run_timing(cfg: ParityConfig) -> Dict:
     """Forward and forward+backward seconds per (method, Gaussians, image), and CPU / GPU ratios."""
-    from naka_gs_plugin.bench.rasterizer_bench import make_scene as bench_scene
+    from benchmarks.rasterizer import make_scene as bench_scene
 
     unknown = [m for m in cfg.timing_methods if m not in TIMING_METHODS]
     if unknown:
@@ -626,3 +630,24 @@ def run(cfg: ParityConfig) -> Tuple[Dict, str]:
         (cfg.out_dir / f"{stem}.md").write_text(table)
         (cfg.out_dir / f"{stem}.json").write_text(json.dumps(result, indent=2))
     return result, table
+
+
+@dataclass
+class CudaParity(ParityConfig):
+    """Our rasterizers against gsplat's CUDA rasterization (or the torch path as a stand-in)."""
+
+    def main(self) -> None:
+        run(self)
+
+
+def entrypoint(args: Optional[Sequence[str]] = None) -> None:
+    """``python -m benchmarks.cuda_parity``; bad options print one line."""
+    parity = tyro.cli(CudaParity, args=args)
+    try:
+        parity.main()
+    except (FileNotFoundError, ValueError) as err:
+        raise SystemExit(f"python -m benchmarks.cuda_parity: {err}") from None
+
+
+if __name__ == "__main__":
+    entrypoint()

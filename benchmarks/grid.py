@@ -1,6 +1,6 @@
-"""``naka-gs-bench``: what accuracy costs in time, as a resumable grid of training runs.
+"""``python -m benchmarks.grid``: what accuracy costs in time, as a resumable grid of training runs.
 
-A grid file (``configs/bench/*.yaml``) names scenes with ground truth (any ``lowlight-data`` scene
+A grid file (``benchmarks/configs/*.yaml``) names scenes with ground truth (any ``lowlight-data`` scene
 with test images, e.g. LOM, or a simulator spec that is generated on the fly), a list of evaluation
 milestones in training steps, a ``base`` of settings shared by every run and ``families``: named
 settings that differ from the base (correction off, random init, another rasterizer, ...). Every
@@ -17,6 +17,8 @@ to each milestone, rendering and evaluation), PSNR / SSIM / LPIPS,
 Gaussian count and peak resident memory. Outputs in ``--out``: ``results.json`` (all runs),
 ``results.md`` (a table), ``psnr_vs_seconds.png`` (one curve per family, Pareto front marked) and
 ``psnr_vs_steps.png``. Re-running resumes: finished runs (``ok`` or ``failed``) are not redone.
+
+Run from the repository root: ``python -m benchmarks.grid --help``.
 """
 
 from __future__ import annotations
@@ -34,19 +36,23 @@ import time
 import traceback
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Dict, List, Sequence, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
+import tyro
 import yaml
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from naka_gs_plugin.shipped import CONFIGS, config_file
+from naka_gs_plugin.progress import StageProgress
+from naka_gs_plugin.shipped import config_file
+
+REPO = Path(__file__).resolve().parents[1]
+"""The clone this benchmark runs from; grid paths ``benchmarks/configs/...`` resolve against it."""
 
 ALIASES: Dict[str, str] = {
     "steps": "max_num_iterations",
     "downscale": "pipeline.datamanager.dataparser.downscale_factor",
     "enhance": "pipeline.datamanager.enhance.method",
-    "stats": "pipeline.datamanager.enhance.stats",
     "correction": "pipeline.datamanager.enhance.correction",
     "rasterizer": "pipeline.model.rasterizer",
     "sh_degree": "pipeline.model.sh_degree",
@@ -63,7 +69,7 @@ class BenchSpecError(ValueError):
 
 @dataclass
 class GridSpec:
-    """A parsed ``configs/bench/*.yaml``."""
+    """A parsed ``benchmarks/configs/*.yaml``."""
 
     name: str
     path: Path
@@ -77,10 +83,12 @@ class GridSpec:
 
 
 def load_grid(path: Path) -> GridSpec:
-    """Parse and check a grid file (``configs/bench/...``: the shipped one if there is no such file)."""
-    path = config_file(Path(path))
+    """Parse and check a grid file (``benchmarks/configs/...`` is found from any directory)."""
+    path = Path(path)
+    if not path.exists() and not path.is_absolute() and (REPO / path).exists():
+        path = REPO / path
     if not path.is_file():
-        shipped = sorted(f"configs/bench/{p.name}" for p in (CONFIGS / "bench").glob("*.yaml"))
+        shipped = sorted(f"benchmarks/configs/{p.name}" for p in (REPO / "benchmarks" / "configs").glob("*.yaml"))
         raise BenchSpecError(f"{path}: no such grid file -- pass one of {shipped}")
     raw = yaml.safe_load(path.read_text()) or {}
     unknown = set(raw) - {"name", "scenes", "milestones", "base", "families", "seed"}
@@ -90,7 +98,9 @@ def load_grid(path: Path) -> GridSpec:
         )
     for key in ("scenes", "milestones", "families"):
         if not raw.get(key):
-            raise BenchSpecError(f"{path}: '{key}' is missing or empty -- see configs/bench/smoke.yaml for the format")
+            raise BenchSpecError(
+                f"{path}: '{key}' is missing or empty -- see benchmarks/configs/smoke.yaml for the format"
+            )
     milestones = sorted(int(s) for s in raw["milestones"])
     if milestones[0] < 1:
         raise BenchSpecError(f"{path}: milestones must be positive step counts, got {milestones}")
@@ -323,7 +333,7 @@ def execute(run: Dict[str, Any], spec: GridSpec, out: Path, timeout_s: int) -> D
         log = run_file.with_name("log.txt")
         with open(log, "w") as fh:
             proc = subprocess.run(
-                [sys.executable, "-m", "naka_gs_plugin.bench.grid", "--run", str(run_file), "--out", str(out)],
+                [sys.executable, "-m", "benchmarks.grid", "--run", str(run_file), "--out", str(out)],
                 stdout=fh,
                 stderr=subprocess.STDOUT,
                 timeout=timeout_s,
@@ -332,6 +342,8 @@ def execute(run: Dict[str, Any], spec: GridSpec, out: Path, timeout_s: int) -> D
                     **os.environ,
                     "TORCHDYNAMO_DISABLE": os.environ.get("TORCHDYNAMO_DISABLE", "1"),
                     "NAKA_GS_CACHE": str(run_file.parent / "cache"),
+                    # benchmarks/ is not installed: the child finds it in this clone.
+                    "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])),
                 },
             )
         outcome = json.loads(result_file.read_text()) if result_file.exists() else None
@@ -471,5 +483,76 @@ def _child(run_file: Path, out: Path) -> None:
     result_file.write_text(json.dumps(result, indent=1))
 
 
-if __name__ == "__main__":  # internal: ``--run RUN_FILE --out OUT``, one run in this process (see execute)
-    _child(Path(sys.argv[2]), Path(sys.argv[4]))
+@dataclass
+class Bench:
+    """Run (or resume) an accuracy-vs-time grid and write its table and plots."""
+
+    grid: tyro.conf.Positional[Path]
+    """Grid file, e.g. benchmarks/configs/cpu.yaml."""
+    out: Optional[Path] = None
+    """Output folder (default outputs/bench/<grid name>)."""
+    only: Tuple[str, ...] = ()
+    """Run only these run ids (scene/family) or families."""
+    retry_failed: bool = False
+    """Redo runs recorded as failed (finished ones are never redone)."""
+    report_only: bool = False
+    """Only rebuild results.md and the plots from results.json."""
+    timeout_s: int = 4 * 3600
+    """Per-run limit; a run past it is recorded as failed."""
+
+    def main(self) -> Dict[str, Any]:
+        spec = load_grid(self.grid)
+        out = self.out or Path("outputs/bench") / spec.name
+        out.mkdir(parents=True, exist_ok=True)
+        results_path = out / "results.json"
+        results: Dict[str, Any] = json.loads(results_path.read_text()) if results_path.exists() else {}
+        results.setdefault("grid", spec.name)
+        results.setdefault("runs", {})
+        results["machine"] = machine_description()
+        if not self.report_only:
+            runs = [
+                r for r in grid_runs(spec, out) if not self.only or r["id"] in self.only or r["family"] in self.only
+            ]
+            todo = []
+            for r in runs:
+                done = results["runs"].get(r["id"])
+                if (
+                    done is None
+                    or (self.retry_failed and done["status"] == "failed")
+                    or done.get("settings") != r["settings"]
+                    or done.get("milestones") != r["milestones"]
+                ):
+                    todo.append(r)
+            CONSOLE.print(
+                f"[naka-gs bench] {spec.name}: {len(runs)} runs, {len(runs) - len(todo)} already done", markup=False
+            )
+            with StageProgress() as progress:
+                task = progress.add_task("grid", total=len(todo))
+                for r in todo:
+                    progress.update(task, description=f"{r['id']}")
+                    results["runs"][r["id"]] = execute(r, spec, out, self.timeout_s)
+                    results_path.write_text(json.dumps(results, indent=1))  # checkpoint after every run
+                    progress.advance(task)
+        results_path.write_text(json.dumps(results, indent=1))
+        (out / "results.md").write_text(markdown_table(results))
+        plot(results, out)
+        CONSOLE.print(
+            f"[naka-gs bench] wrote {results_path}, results.md, psnr_vs_seconds.png, psnr_vs_steps.png", markup=False
+        )
+        return results
+
+
+def entrypoint(args: Optional[Sequence[str]] = None) -> None:
+    """``python -m benchmarks.grid``; a bad grid prints one line and exits with status 2."""
+    try:
+        tyro.cli(Bench, args=args).main()
+    except BenchSpecError as err:
+        CONSOLE.print(f"[naka-gs bench] error: {err}", markup=False)
+        raise SystemExit(2) from None
+
+
+if __name__ == "__main__":
+    if sys.argv[1:2] == ["--run"]:  # internal: ``--run RUN_FILE --out OUT``, one run in this process (see execute)
+        _child(Path(sys.argv[2]), Path(sys.argv[4]))
+    else:
+        entrypoint()

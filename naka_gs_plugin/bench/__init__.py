@@ -1,1 +1,0 @@
-"""Benchmarks: scripts that print measured figures as ratios from one run."""
