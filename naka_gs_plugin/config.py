@@ -8,7 +8,10 @@ out here; their values are splatfacto's.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
+import tyro
 from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
@@ -43,13 +46,26 @@ screen-size splitting (radius > 5% of the image) stays on for the whole run and 
 explodes (docs/design.md)."""
 
 
-def _adam(lr: float, final: float | None = None, warmup: int = 0) -> dict:
+@tyro.conf.configure(tyro.conf.Suppress)
+@dataclass
+class InternalAdam(AdamOptimizerConfig):
+    """Adam for a parameter group of ours that nobody should tune: kept out of ``--help`` (tyro lists every
+    entry of nerfstudio's ``optimizers`` dict), still set by a run's config.yml."""
+
+
+@tyro.conf.configure(tyro.conf.Suppress)
+@dataclass
+class InternalExponentialDecay(ExponentialDecaySchedulerConfig):
+    """The schedule of such a group, kept out of ``--help`` likewise."""
+
+
+def _adam(lr: float, final: float | None = None, warmup: int = 0, internal: bool = False) -> dict:
     scheduler = None
     if final is not None:
-        scheduler = ExponentialDecaySchedulerConfig(
+        scheduler = (InternalExponentialDecay if internal else ExponentialDecaySchedulerConfig)(
             lr_final=final, max_steps=DECAY_STEPS, warmup_steps=warmup, lr_pre_warmup=0
         )
-    return {"optimizer": AdamOptimizerConfig(lr=lr, eps=1e-15), "scheduler": scheduler}
+    return {"optimizer": (InternalAdam if internal else AdamOptimizerConfig)(lr=lr, eps=1e-15), "scheduler": scheduler}
 
 
 naka_gs_method = MethodSpecification(
@@ -78,7 +94,7 @@ naka_gs_method = MethodSpecification(
             "quats": _adam(0.001),
             "camera_opt": _adam(1e-4, final=5e-7, warmup=1000),
             "bilateral_grid": _adam(2e-3, final=1e-4, warmup=1000),
-            "appearance": _adam(1e-3, final=1e-4),
+            "appearance": _adam(1e-3, final=1e-4, internal=True),
         },
         viewer=ViewerConfig(num_rays_per_chunk=1 << 15),
         vis="viewer",

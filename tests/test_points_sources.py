@@ -470,7 +470,7 @@ def test_ns_train_seeded_from_simulator_points(tmp_path):
     env = {**os.environ, "TORCHDYNAMO_DISABLE": "1", "NAKA_GS_CACHE": str(tmp_path / "cache")}
     cmd = [str(BIN / "ns-train"), "naka-gs", "--max-num-iterations", "20", "--output-dir", str(tmp_path / "out"),
            "--vis", "tensorboard", "--viewer.quit-on-train-completion", "True", "--timestamp", "run",
-           "--steps-per-save", "20", "--pipeline.init.min-points", "500",
+           "--steps-per-save", "20",
            "--pipeline.datamanager.enhance.correction", "none", "--data", str(scene)]  # fmt: skip
     res = subprocess.run(cmd, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                          timeout=400)  # fmt: skip
@@ -484,7 +484,8 @@ def test_ns_train_seeded_from_simulator_points(tmp_path):
         summary = json.loads(str(data["summary"]))
     assert summary["source"] == f"PLY {scene / 'points.ply'}" and summary["loaded_count"] == 3360
     assert summary["alignment"]["matched_cameras"] == 4 and summary["alignment"]["rms_world"] < 1e-6
-    assert 500 <= len(seeded) < summary["ppm"]["voxel_count"] < 3360
+    # PPM's own minimum (MIN_POINTS, hidden from ns-train's --help) exceeds this tiny cloud: voxel pooling only.
+    assert len(seeded) == summary["ppm"]["voxel_count"] < 3360
     ckpt = next((tmp_path / "out" / "scene" / "naka-gs" / "run" / "nerfstudio_models").glob("*.ckpt"))
     means = torch.load(ckpt, map_location="cpu", weights_only=False)["pipeline"]["_model.gauss_params.means"]
     assert means.shape[0] == len(seeded)  # no densification before the warm-up ends
