@@ -1,0 +1,44 @@
+"""Where a full-size CPU training step goes (issue 34's first profile; docs/cpu.md, "Where a full-size step goes").
+
+Resumes a trained run (past step 6,000, so every step is at full size) for STEPS steps under cProfile,
+in this process, with evaluation and saving out of the window, and prints the wall per step and the
+functions with the most own time and the most cumulative time. From the repository root:
+
+    .venv/bin/python docs/experiments/step_profile.py CONFIG [STEPS]
+        e.g. outputs/bench/lom-holdout/runs/bike/naka-gs/naka-gs/config.yml (a warm cache: no enhancement)
+"""
+
+import cProfile
+import pstats
+import sys
+import time
+from pathlib import Path
+
+import yaml
+
+
+def main(config_path: Path, steps: int) -> None:
+    config = yaml.load(config_path.read_text(), Loader=yaml.Loader)
+    config.load_dir = config_path.parent / "nerfstudio_models"
+    config.output_dir = Path("/tmp/naka-gs-step-profile")
+    config.max_num_iterations = steps
+    config.steps_per_save = config.steps_per_eval_image = config.steps_per_eval_all_images = 10**9
+    config.steps_per_eval_batch = 10**9
+    config.vis = "tensorboard"
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup(test_mode="val")
+    _ = trainer.pipeline.datamanager.cached_train
+    profile = cProfile.Profile()
+    start = time.perf_counter()
+    profile.enable()
+    trainer.train()
+    profile.disable()
+    wall = time.perf_counter() - start
+    print(f"{1000 * wall / steps:.1f} ms per step over {steps} steps ({trainer.pipeline.model.num_points} Gaussians)")
+    stats = pstats.Stats(profile)
+    stats.sort_stats("tottime").print_stats(25)
+    stats.sort_stats("cumulative").print_stats(45)
+
+
+if __name__ == "__main__":
+    main(Path(sys.argv[1]), int(sys.argv[2]) if len(sys.argv) > 2 else 50)
