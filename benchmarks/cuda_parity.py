@@ -45,6 +45,9 @@ import tyro
 from jaxtyping import Float
 from torch import Tensor
 
+from benchmarks.rasterizer import make_scene as bench_scene
+from benchmarks.rasterizer import sync, time_fwd_bwd
+
 F64 = torch.float64
 EXACT_PAIRS_OPACITY = 0.35
 """Below 1 / (255 * exp(-4.5)) = 0.353 no pair outside a Gaussian's radius box reaches alpha 1/255."""
@@ -482,31 +485,6 @@ def parity_table(result: Dict) -> str:
 
 
 # ------------------------------------------------------------------------------------------ timing
-def _sync(device: str) -> None:
-    if device.startswith("cuda"):
-        torch.cuda.synchronize()
-
-
-def time_fwd_bwd(render: Renderer, scene: Dict[str, Tensor], width: int, height: int, repeats: int, device: str):
-    """Median forward and forward+backward seconds of ``repeats`` renders after one warm-up (the CPU
-    benchmark's loss: mean squared colour + mean alpha, SH degree 3)."""
-    from benchmarks.rasterizer import SH_DEGREE
-
-    fwd, total = [], []
-    for _ in range(repeats + 1):
-        params = {k: v.detach().clone().requires_grad_(k not in ("viewmats", "Ks")) for k, v in scene.items()}
-        _sync(device)
-        t0 = time.perf_counter()
-        colors, alphas, _ = render(**params, width=width, height=height, sh_degree=SH_DEGREE)
-        _sync(device)
-        t1 = time.perf_counter()
-        (colors.square().mean() + alphas.mean()).backward()
-        _sync(device)
-        fwd.append(t1 - t0)
-        total.append(time.perf_counter() - t0)
-    return statistics.median(fwd[1:]), statistics.median(total[1:])
-
-
 TIMING_METHODS = {
     "gsplat": (gsplat_renderer, "cuda"),
     "torch-cuda": (torch_renderer, "cuda"),
@@ -517,7 +495,6 @@ TIMING_METHODS = {
 
 def run_timing(cfg: ParityConfig) -> Dict:
     """Forward and forward+backward seconds per (method, Gaussians, image), and CPU / GPU ratios."""
-    from benchmarks.rasterizer import make_scene as bench_scene
 
     unknown = [m for m in cfg.timing_methods if m not in TIMING_METHODS]
     if unknown:
@@ -571,10 +548,10 @@ def time_correction(resolution: str, repeats: int) -> Dict:
     seconds = []
     with torch.no_grad():
         for _ in range(repeats + 1):
-            _sync("cuda")
+            sync("cuda")
             t0 = time.perf_counter()
             runner(*pair)
-            _sync("cuda")
+            sync("cuda")
             seconds.append(time.perf_counter() - t0)
     torch.cuda.empty_cache()
     return {"resolution": resolution, "exact_cuda_s": statistics.median(seconds[1:])}

@@ -148,7 +148,8 @@ def scene_stats(scene: Dict, width: int, height: int) -> Tuple[float, int]:
     return float(proj.radii[0][visible].float().mean()), pairs
 
 
-def _sync(device: str) -> None:
+def sync(device: str) -> None:
+    """Wait for the GPU's queued work (timings of CUDA renders); nothing on the CPU."""
     if device.startswith("cuda"):
         torch.cuda.synchronize()
 
@@ -176,19 +177,19 @@ def _set_threads(threads: int) -> None:
     torch.set_num_threads(threads)
 
 
-def _time_renders(scene: Dict, width: int, height: int, method: str, repeats: int, device: str):
-    """Median forward and forward+backward seconds of ``repeats`` renders after one warm-up."""
-    render = _renderer(method)
+def time_fwd_bwd(render, scene: Dict, width: int, height: int, repeats: int, device: str) -> Tuple[float, float]:
+    """Median forward and forward+backward seconds of ``repeats`` renders of ``render`` (gsplat's
+    ``rasterization`` interface) after one warm-up; the loss: mean squared colour + mean alpha."""
     fwd, total = [], []
     for _ in range(repeats + 1):
         params = {k: v.detach().clone().requires_grad_(k not in ("viewmats", "Ks")) for k, v in scene.items()}
-        _sync(device)
+        sync(device)
         t0 = time.perf_counter()
         colors, alphas, _ = render(**params, width=width, height=height, sh_degree=SH_DEGREE)
-        _sync(device)
+        sync(device)
         t1 = time.perf_counter()
         (colors.square().mean() + alphas.mean()).backward()
-        _sync(device)
+        sync(device)
         t2 = time.perf_counter()
         fwd.append(t1 - t0)
         total.append(t2 - t0)
@@ -221,7 +222,9 @@ def _run_case(method: str, n: int, width: int, height: int, threads: int, cfg: B
         base = reset_peak_rss()
     result: Dict = {"method": method, "gaussians": n, "width": width, "height": height, "threads": threads}
     if method != "dense" or n * width * height <= cfg.dense_budget:
-        result["fwd_s"], result["fwd_bwd_s"] = _time_renders(scene, width, height, method, cfg.repeats, device)
+        result["fwd_s"], result["fwd_bwd_s"] = time_fwd_bwd(
+            _renderer(method), scene, width, height, cfg.repeats, device
+        )
         result["measured_pixels"] = width * height
     else:
         # Dense cost is t0 + k * pixels: measure a 1-pixel and a budget-sized top-left window of the
@@ -229,8 +232,8 @@ def _run_case(method: str, n: int, width: int, height: int, threads: int, cfg: B
         pixels = max(2, cfg.dense_budget // n)
         win_w = min(width, pixels)
         win_h = max(1, min(height, pixels // win_w))
-        one = _time_renders(scene, 1, 1, method, cfg.repeats, device)
-        window = _time_renders(scene, win_w, win_h, method, cfg.repeats, device)
+        one = time_fwd_bwd(_renderer(method), scene, 1, 1, cfg.repeats, device)
+        window = time_fwd_bwd(_renderer(method), scene, win_w, win_h, cfg.repeats, device)
         line = extrapolate(one, window, win_w * win_h, width * height)
         if line is None:
             return None  # shown as "-": the window is too small to tell its per-pixel cost from noise

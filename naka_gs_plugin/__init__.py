@@ -54,10 +54,12 @@ class _RenamedModules(_importlib_abc.MetaPathFinder, _importlib_abc.Loader):
         return _importlib_util.spec_from_loader(name, self) if name in RENAMED else None
 
     def create_module(self, spec):
-        return _importlib.import_module(RENAMED[spec.name])
+        module = _importlib.import_module(RENAMED[spec.name])
+        spec.loader_state = module.__spec__  # importlib sets the alias's spec on it next
+        return module
 
     def exec_module(self, module):
-        pass
+        module.__spec__ = module.__spec__.loader_state  # its own spec back
 
 
 _sys.meta_path.append(_RenamedModules())

@@ -81,6 +81,9 @@ def test_a_renamed_module_still_loads_old_run_configs():
     )
     config = yaml.load(old, Loader=yaml.Loader)
     assert type(config) is LowLightDatamanagerConfig and config._target is LowLightDatamanager
+    import naka_gs_plugin.datamanager as module
+
+    assert module.__spec__.name == "naka_gs_plugin.datamanager"  # the alias leaves the module's own spec
 
 
 def test_no_relative_imports():
