@@ -40,6 +40,7 @@ Action = Callable[[], object]
 class Raises:
     exc: type
     message: str
+    after: Optional[Callable[["Env", None], None]] = None  # a further check once it has raised
 
 
 @dataclass
@@ -424,6 +425,28 @@ def _nothing_committed(env, _):
     assert not [q for q in (env.tmp / "c").rglob("*") if q.is_file()]
 
 
+def cache_disk_full_cuts_a_copy_short(env):
+    """A full disk (tmpfs): OpenCV reports success for a PNG cut short; nothing may be kept as complete."""
+    s = env.scene()
+    imwrite = cv2.imwrite
+
+    def cut_short(name, img, *args):
+        ok = imwrite(name, img, *args)
+        truncate(Path(name), 1 / 2)
+        return ok
+
+    env.monkeypatch.setattr(cv2, "imwrite", cut_short)
+    env.monkeypatch.setenv("NAKA_GS_CACHE", str(env.tmp / "c"))
+    return parse(s, factor=2), [s]
+
+
+def cache_unreadable_entry_is_not_the_photo(env):
+    """A cache entry broken after it was made (e.g. by another program) is named as ours, with the fix."""
+    s = env.scene()
+    copy = truncate(downscaled_copy(first_train_image(s), 2))
+    return lambda: read_rgb(copy), [s]
+
+
 def cache_corrupt_downscaled_copy(env):
     s = env.scene()
     src = first_train_image(s)
@@ -614,7 +637,12 @@ CASES: List[Tuple[Callable[[Env], Tuple[Action, List[Path]]], object]] = [
     (cam_reflection, Raises(LowLightDataError, "det -1")),
     (cam_infinite_translation, Raises(LowLightDataError, "frame 0 'transform_matrix' is not a finite 4x4")),
     (cache_nested_writes_use_unique_temporaries, Ok(_last_writer_wins)),
-    (cache_imwrite_fails, Raises(LowLightDataError, "cannot write the downscaled copy")),
+    (cache_imwrite_fails, Raises(LowLightDataError, "cannot write the downscaled copy", _nothing_committed)),
+    (
+        cache_disk_full_cuts_a_copy_short,
+        Raises(LowLightDataError, "(disk full or not writable?; nothing was kept)", _nothing_committed),
+    ),
+    (cache_unreadable_entry_is_not_the_photo, Raises(ImageReadError, "naka-gs cache file, not your photo: delete it")),
     (cache_corrupt_downscaled_copy, Ok(_recomputed_with_warning)),
     (cache_corrupt_enhanced_entry, Ok(_enhanced_recomputed)),
     (cache_env_names_a_file, Ok(_fell_back_once)),
@@ -650,6 +678,8 @@ def test_bad_input(make, expect, toy_scene, tmp_path, monkeypatch, capsys):
             action()
         message = str(err.value)
         assert expect.message in message and "\n" not in message, message
+        if expect.after is not None:
+            expect.after(env, None)
     elif isinstance(expect, Exits):
         with pytest.raises(SystemExit) as err:
             action()

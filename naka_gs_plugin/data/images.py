@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import io
 from pathlib import Path
+from typing import Sequence
 
 import cv2
 import numpy as np
@@ -31,6 +32,19 @@ class ImageReadError(ValueError):
 _RESTORE = "restore the complete file (copy it again from the camera or backup) or remove it from the scene"
 
 
+def _fix(path: Path) -> str:
+    """How to mend an unreadable ``path``: the user's file is restored; a cache file of ours is deleted."""
+    from naka_gs_plugin.data.cache import cache_root_of  # here: the reader imports without nerfstudio (GPU side)
+
+    root = cache_root_of(path)
+    if root is None:
+        return _RESTORE
+    return (
+        f"this is a naka-gs cache file, not your photo: delete it (or the cache folder {root}, which NAKA_GS_CACHE "
+        "sets) and run again to rebuild it"
+    )
+
+
 def _check_jpeg_complete(path: Path, data: bytes) -> None:
     """Decode ``data`` with PIL, refusing truncation (OpenCV would silently pad it with grey)."""
     saved = ImageFile.LOAD_TRUNCATED_IMAGES
@@ -39,7 +53,7 @@ def _check_jpeg_complete(path: Path, data: bytes) -> None:
         with Image.open(io.BytesIO(data)) as im:
             im.load()
     except OSError as err:
-        raise ImageReadError(f"{path}: truncated or corrupt JPEG ({err}) -- {_RESTORE}") from None
+        raise ImageReadError(f"{path}: truncated or corrupt JPEG ({err}) -- {_fix(path)}") from None
     finally:
         ImageFile.LOAD_TRUNCATED_IMAGES = saved
 
@@ -49,17 +63,39 @@ def read_raw(path: Path) -> np.ndarray:
     try:
         data = Path(path).read_bytes()
     except OSError as err:
-        raise ImageReadError(f"{path}: cannot be read ({err.strerror or err}) -- {_RESTORE}") from None
+        raise ImageReadError(f"{path}: cannot be read ({err.strerror or err}) -- {_fix(path)}") from None
     if not data:
-        raise ImageReadError(f"{path}: empty file (0 bytes) -- {_RESTORE}")
+        raise ImageReadError(f"{path}: empty file (0 bytes) -- {_fix(path)}")
     arr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED | cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
     if arr is None:
-        raise ImageReadError(f"{path}: unreadable image (truncated, corrupt or not a PNG/JPEG/TIFF) -- {_RESTORE}")
+        raise ImageReadError(f"{path}: unreadable image (truncated, corrupt or not a PNG/JPEG/TIFF) -- {_fix(path)}")
     if data[:3] == b"\xff\xd8\xff":
         _check_jpeg_complete(path, data)
     if arr.size == 0:
-        raise ImageReadError(f"{path}: image has no pixels -- {_RESTORE}")
+        raise ImageReadError(f"{path}: image has no pixels -- {_fix(path)}")
     return arr
+
+
+def write_image(path: Path, bgr: np.ndarray, params: Sequence[int] = ()) -> Path:
+    """Write ``bgr`` (OpenCV channel order) to ``path`` with :func:`cv2.imwrite`, published by
+    :func:`atomic_write` only once it reads back whole.
+
+    On a full disk OpenCV may report success for a file cut short; reading it back is what catches that.
+    Raises :class:`OSError` (``path`` untouched) when the file cannot be written complete.
+    """
+    from naka_gs_plugin.data.safe_io import atomic_write  # here: the reader imports without nerfstudio (GPU side)
+
+    def write(tmp: Path) -> bool:
+        if not cv2.imwrite(str(tmp), bgr, list(params)):
+            return False
+        try:
+            back = read_raw(tmp)
+        except ImageReadError:
+            return False
+        lossy = tmp.suffix.lower() in (".jpg", ".jpeg")
+        return back.shape == bgr.shape and back.dtype == bgr.dtype and (lossy or np.array_equal(back, bgr))
+
+    return atomic_write(path, write)
 
 
 def read_rgb(path: Path, dtype: type = np.float32) -> Float[np.ndarray, "H W 3"]:

@@ -44,8 +44,7 @@ from PIL import Image
 from torch import Tensor
 
 from naka_gs_plugin.data.cache import default_cache_dir
-from naka_gs_plugin.data.images import IMAGE_SUFFIXES, ImageReadError, read_raw, to_rgb01
-from naka_gs_plugin.data.safe_io import atomic_write
+from naka_gs_plugin.data.images import IMAGE_SUFFIXES, ImageReadError, read_raw, to_rgb01, write_image
 
 MAX_AUTO_RESOLUTION = 1600
 """Auto downscale picks the smallest power of two bringing the longer side to at most this (as nerfstudio-data)."""
@@ -351,7 +350,8 @@ def downscaled_copy(path: Path, factor: int) -> Path:
     """Path of ``path`` downscaled by ``factor`` (area filter) in the cache (``$NAKA_GS_CACHE``); made once.
 
     A cached copy that does not decode to the expected size (cut short, corrupted) is made again,
-    with a warning; a new copy is written to a unique temporary name, checked, and renamed.
+    with a warning; a new copy is written to a unique temporary name, read back whole (a full disk can
+    cut it short while OpenCV reports success), and only then renamed.
     """
     digest = hashlib.sha1(f"{path.resolve()}|{path.stat().st_mtime_ns}|{path.stat().st_size}".encode()).hexdigest()[:16]
     folder = default_cache_dir() / "downscaled" / f"x{factor}"
@@ -374,9 +374,14 @@ def downscaled_copy(path: Path, factor: int) -> Path:
     scale, dtype = (255.0, np.uint8) if raw.dtype == np.uint8 else (65535.0, np.uint16)
     pixels = np.round(small[..., ::-1] * scale).astype(dtype)
     try:
-        atomic_write(out, lambda tmp: cv2.imwrite(str(tmp), pixels))
+        write_image(out, pixels)
     except OSError as err:
-        raise _fail(out, f"cannot write the downscaled copy ({err})", "free disk space or set NAKA_GS_CACHE") from None
+        raise _fail(
+            out,
+            f"cannot write the downscaled copy of {path.name} ({err.strerror or 'disk full or not writable?'}; "
+            "nothing was kept)",
+            "free disk space there or set NAKA_GS_CACHE to a folder with room",
+        ) from None
     return out
 
 

@@ -39,10 +39,9 @@ import tyro
 from nerfstudio.utils.rich_utils import CONSOLE
 from rich.table import Table
 
-from naka_gs_plugin.data.images import IMAGE_SUFFIXES, ImageReadError, read_rgb
+from naka_gs_plugin.data.images import IMAGE_SUFFIXES, ImageReadError, read_rgb, write_image
 from naka_gs_plugin.data.safe_io import (
     UnsafeOutputError,
-    atomic_write,
     check_not_input,
     check_replaceable,
     publish_dir,
@@ -325,7 +324,7 @@ class ProcessData:
             for name, image in zip(sfm_names[start:end], out):
                 bgr = (image.numpy() * 255.0 + 0.5).astype(np.uint8)[..., ::-1]
                 try:
-                    atomic_write(folder / name, lambda tmp: cv2.imwrite(str(tmp), bgr, PNG_FAST))
+                    write_image(folder / name, np.ascontiguousarray(bgr), PNG_FAST)
                 except OSError as err:
                     raise ProcessDataError(f"{err} -- free disk space next to --output-dir") from None
         return enhancer.correction_path
