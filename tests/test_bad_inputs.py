@@ -394,6 +394,86 @@ def cam_infinite_translation(env):
     return parse(s), [s]
 
 
+def cam_bottom_rows_zero(env):
+    """Every pose a 3x4 padded with a zero row: read as meant, with one warning (the scale as without it)."""
+    s = env.scene()
+    path = s / "transforms_train.json"
+    meta = json.loads(path.read_text())
+    for frame in meta["frames"]:
+        frame["transform_matrix"][3] = [0, 0, 0, 0]
+    path.write_text(json.dumps(meta))
+    expected = parse(env.toy)().dataparser_scale
+    return lambda: (parse(s)(), expected), [s]
+
+
+def _padded_read_as_meant(env, result):
+    outputs, expected = result
+    log = env.log()
+    assert outputs.dataparser_scale == expected and log.count("bottom row 0 0 0 0; read as 0 0 0 1") == 1, log
+
+
+def cam_bottom_row_not_homogeneous(env):
+    s = env.scene()
+    pose = pose0(s)
+    pose[3] = [0.0, 0.0, 1.0, 1.0]
+    edit_frame0(s, transform_matrix=pose.tolist())
+    return parse(s), [s]
+
+
+def cam_one_camera_far_out(env):
+    s = env.scene()
+    pose = pose0(s)
+    pose[0, 3] = 1e9
+    edit_frame0(s, transform_matrix=pose.tolist())
+    return parse(s), [s]
+
+
+def cam_all_at_one_position(env):
+    s = env.scene()
+    path = s / "transforms_train.json"
+    meta = json.loads(path.read_text())
+    for frame in meta["frames"]:
+        frame["transform_matrix"] = meta["frames"][0]["transform_matrix"]
+    path.write_text(json.dumps(meta))
+    return parse(s), [s]
+
+
+def cam_distortion_absurd(env):
+    s = env.scene()
+    path = s / "transforms_train.json"
+    meta = json.loads(path.read_text())
+    meta.update(k1=50, k2=-80)
+    path.write_text(json.dumps(meta))
+    return parse(s), [s]
+
+
+def float_tiff_scene(env, nan: bool = False) -> Path:
+    """The toy scene with its first training capture as a float32 RGB TIFF (one NaN pixel if ``nan``)."""
+    s = env.scene()
+    png = first_train_image(s)
+    arr = cv2.imread(str(png), cv2.IMREAD_UNCHANGED).astype(np.float32) / 65535.0
+    if nan:
+        arr[5, 5, 1] = np.nan
+    cv2.imwrite(str(png.with_suffix(".tif")), arr, [cv2.IMWRITE_TIFF_COMPRESSION, 1])  # uncompressed keeps NaN
+    png.unlink()
+    edit_frame0(s, file_path=str(png.with_suffix(".tif").relative_to(s)))
+    return s
+
+
+def img_float32_tiff_trains(env):
+    s = float_tiff_scene(env)
+    return datamanager(s), [s]
+
+
+def _all_loaded(env, cached):
+    assert len(cached) == 8 and all(torch.isfinite(d["image"]).all() for d in cached)
+
+
+def img_float32_tiff_with_nan(env):
+    s = float_tiff_scene(env, nan=True)
+    return datamanager(s), [s]
+
+
 def cache_nested_writes_use_unique_temporaries(env):
     """Two writers of one cache entry at once (as two ns-train runs): neither clobbers the other's temp file."""
     target = env.tmp / "cache" / "entry.npy"
@@ -636,6 +716,13 @@ CASES: List[Tuple[Callable[[Env], Tuple[Action, List[Path]]], object]] = [
     (cam_scaled_rotation, Raises(LowLightDataError, "rotation block is not a rotation (|R^T R - I| = 3")),
     (cam_reflection, Raises(LowLightDataError, "det -1")),
     (cam_infinite_translation, Raises(LowLightDataError, "frame 0 'transform_matrix' is not a finite 4x4")),
+    (cam_bottom_rows_zero, Ok(_padded_read_as_meant)),
+    (cam_bottom_row_not_homogeneous, Raises(LowLightDataError, "bottom row is [0.0, 0.0, 1.0, 1.0], not [0, 0, 0, 1]")),
+    (cam_one_camera_far_out, Raises(LowLightDataError, "camera is 1e+09 from the cameras' median centre, over 100x")),
+    (cam_all_at_one_position, Raises(LowLightDataError, "all 8 training cameras are at one position")),
+    (cam_distortion_absurd, Raises(LowLightDataError, "distortion k1=50, k2=-80 scales the image corner by 3.07")),
+    (img_float32_tiff_trains, Ok(_all_loaded)),
+    (img_float32_tiff_with_nan, Raises(ImageReadError, "0000.tif: 1 pixels are NaN/Inf")),
     (cache_nested_writes_use_unique_temporaries, Ok(_last_writer_wins)),
     (cache_imwrite_fails, Raises(LowLightDataError, "cannot write the downscaled copy", _nothing_committed)),
     (

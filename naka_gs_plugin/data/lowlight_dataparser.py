@@ -54,6 +54,18 @@ MAX_FOCAL_RATIO = 100.0
 ROTATION_TOLERANCE = 1e-2
 """Largest ``|R^T R - I|`` entry accepted for a pose's rotation block (exports round to ~1e-7)."""
 DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+DISTORTION_SCALE_RANGE = (0.5, 2.0)
+"""Accepted radial scale of the distortion at the image corner (distorted / undistorted radius).
+
+Measured: LOM's calibrations give 1.005 or less, RealX3D has none (1.0); strong wide-angle lenses
+in OpenCV's model (k1 ~ -0.3, k2 ~ 0.1) give ~0.7. Beyond this range the coefficients are a typo or
+another model's (fisheye), and the undistorted image is meaningless."""
+MAX_CAMERA_SPREAD = 100.0
+"""Largest distance of a training camera from the cameras' median centre, in median distances.
+
+Measured on the 12 real scenes in ../shared/data (LOM bike/chair/shrub/sofa, the 8 RealX3D scenes):
+1.9 to 5.4 (LOM chair). A camera 100x out is a broken pose (wrong units, a tracking failure); it would
+also shrink the normalized scene by that factor, since auto-scale fits the farthest camera into [-1, 1]."""
 
 
 class LowLightDataError(ValueError):
@@ -164,6 +176,17 @@ def _resolve_image(scene: Path, frame: dict, index: int, path: Path) -> Path:
     return candidate
 
 
+_WARNED_PADDED: set = set()
+"""Transforms files already warned about zero bottom rows (a file is read for several splits)."""
+
+
+def _bottom_row_zero(frame: dict) -> bool:
+    try:
+        return [float(v) for v in frame["transform_matrix"][3]] == [0.0] * 4
+    except (KeyError, TypeError, ValueError, IndexError):
+        return False
+
+
 def _pose(frame: dict, index: int, path: Path) -> Tensor:
     try:
         mat = torch.tensor(frame["transform_matrix"], dtype=torch.float64)
@@ -173,6 +196,15 @@ def _pose(frame: dict, index: int, path: Path) -> Tensor:
         ) from None
     if mat.shape != (4, 4) or not torch.isfinite(mat).all():
         raise _fail(path, f"frame {index} 'transform_matrix' is not a finite 4x4", "give a 4x4 camera-to-world matrix")
+    bottom = mat[3]
+    if bool((bottom == 0).all()):
+        mat[3, 3] = 1.0  # a 3x4 camera-to-world padded with zeros: read as meant (read_split warns once)
+    elif float((bottom - torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=mat.dtype)).abs().max()) > ROTATION_TOLERANCE:
+        raise _fail(
+            path,
+            f"frame {index} 'transform_matrix' bottom row is {bottom.tolist()}, not [0, 0, 0, 1]",
+            "give a rigid 4x4 camera-to-world (last row 0 0 0 1)",
+        )
     rot = mat[:3, :3]
     error = float((rot.T @ rot - torch.eye(3, dtype=rot.dtype)).abs().max())
     if error > ROTATION_TOLERANCE or float(torch.linalg.det(rot)) <= 0:
@@ -183,6 +215,59 @@ def _pose(frame: dict, index: int, path: Path) -> Tensor:
             "give a rigid camera-to-world (orthonormal rotation with det +1, no scale)",
         )
     return mat
+
+
+def _check_distortion(k: dict, intr: List[float], path: Path, where: str) -> None:
+    """The radial distortion maps the image one-to-one (increasing radius) with a corner scale in
+    :data:`DISTORTION_SCALE_RANGE`; tangential terms are not judged (they are small in real lenses)."""
+    radial = [k["k1"], k["k2"], k["k3"], k["k4"]]
+    if not any(radial):
+        return
+    fx, fy, cx, cy, w, h = intr
+    corner = max(math.hypot((x - cx) / fx, (y - cy) / fy) for x in (0.0, w) for y in (0.0, h))
+    low, high = DISTORTION_SCALE_RANGE
+    ru = np.linspace(0.0, corner / low, 4001)  # undistorted radii, far enough to reach the corner at scale `low`
+    r2 = ru * ru
+    rd = ru * (1.0 + r2 * (radial[0] + r2 * (radial[1] + r2 * (radial[2] + r2 * radial[3]))))
+    reach = np.flatnonzero(rd >= corner)
+    end = int(reach[0]) if reach.size else len(ru) - 1
+    named = ", ".join(f"{key}={k[key]:g}" for key in ("k1", "k2", "k3", "k4") if k[key])
+    fix = "check the coefficients (OpenCV order: k1 k2 p1 p2 k3) or remove them"
+    if (np.diff(rd[: end + 1]) <= 0).any():
+        turn = float(ru[int(np.flatnonzero(np.diff(rd[: end + 1]) <= 0)[0])])
+        raise _fail(
+            path,
+            f"{where} distortion {named} folds the image (the radius turns back at {turn:.2f} of {corner:.2f})",
+            fix,
+        )
+    scale = f"{corner / float(ru[end]):.2f}" if reach.size else f"under {low}"
+    if not reach.size or not low <= corner / float(ru[end]) <= high:
+        raise _fail(
+            path, f"{where} distortion {named} scales the image corner by {scale} (real lenses: {low}-{high})", fix
+        )
+
+
+def _check_camera_spread(train: "SplitFrames") -> None:
+    """Refuse training cameras all at one place, or one far out of the others (see :data:`MAX_CAMERA_SPREAD`):
+    either would make the auto-scale degenerate (1e12, 1e-9) in silence."""
+    centres = train.poses[:, :3, 3].double()
+    mid = centres.median(dim=0).values
+    dist = (centres - mid).norm(dim=1)
+    far = int(dist.argmax())
+    if float(dist[far]) <= 1e-9 * max(1.0, float(mid.norm())):
+        raise _fail(
+            train.json_path,
+            f"all {len(dist)} training cameras are at one position {[round(v, 6) for v in mid.tolist()]}",
+            "3D reconstruction needs views from different positions: check the poses (a copied matrix?)",
+        )
+    median = float(dist.median())
+    if float(dist[far]) > MAX_CAMERA_SPREAD * median:
+        raise _fail(
+            train.json_path,
+            f"frame {far} ({train.images[far].name}) camera is {float(dist[far]):.3g} from the cameras' median "
+            f"centre, over {MAX_CAMERA_SPREAD:g}x their median distance {median:.3g} (real captures: under 6x)",
+            "fix its transform_matrix (units?) or remove the frame",
+        )
 
 
 @dataclass
@@ -201,11 +286,13 @@ def read_split(scene: Path, json_name: str) -> SplitFrames:
     path = scene / json_name
     meta = load_transforms(path)
     images, poses, intr, dist = [], [], [], []
+    padded = 0
     for i, frame in enumerate(meta["frames"]):
         if not isinstance(frame, dict):
             raise _fail(path, f"frame {i} is not an object", "each frame needs file_path and transform_matrix")
         images.append(_resolve_image(scene, frame, i, path))
         poses.append(_pose(frame, i, path))
+        padded += int(_bottom_row_zero(frame))
         where = f"frame {i} ({frame.get('file_path')})"
         intr.append([_intrinsic(meta, frame, k, path, where) for k in ("fl_x", "fl_y", "cx", "cy", "w", "h")])
         _check_intrinsics(intr[-1], path, where)
@@ -213,9 +300,17 @@ def read_split(scene: Path, json_name: str) -> SplitFrames:
         k = {key: 0.0 if v is None else _number(v, f"{where} '{key}'", path) for key, v in raw.items()}
         if not all(math.isfinite(v) for v in k.values()):
             raise _fail(path, f"{where} distortion {k} is not finite", "fix or remove the distortion coefficients")
+        _check_distortion(k, intr[-1], path, where)
         dist.append(camera_utils.get_distortion_params(**k).tolist())
     if not images:
         raise _fail(path, "no frames", "list at least one frame")
+    if padded and path.resolve() not in _WARNED_PADDED:
+        _WARNED_PADDED.add(path.resolve())
+        CONSOLE.log(
+            f"[naka-gs] warning: {path}: {padded} of {len(images)} frames have 'transform_matrix' bottom row "
+            "0 0 0 0; read as 0 0 0 1 (a 3x4 camera-to-world padded with zeros)",
+            markup=False,
+        )
     return SplitFrames(images, torch.stack(poses), torch.tensor(intr, dtype=torch.float64), torch.tensor(dist), path)
 
 
@@ -267,6 +362,7 @@ class LowLightDataParser(DataParser):
                 f"{scene}: scene folder not found -- pass --data <folder with transforms_train.json>"
             )
         train = read_split(scene, "transforms_train.json")
+        _check_camera_spread(train)
         frames = train if split == "train" else read_split(scene, self._split_json(split))
         transform, scale = normalization(train.poses, self.config)
 
@@ -329,14 +425,7 @@ class LowLightDataParser(DataParser):
 def _check_sizes(frames: SplitFrames) -> None:
     """Every image opens and has the json's ``w x h`` (headers only: cheap)."""
     for path, intr in zip(frames.images, frames.intrinsics):
-        try:
-            with Image.open(path) as im:
-                size = im.size
-        except OSError as err:
-            read_raw(path)  # the specific one-line reason (empty, truncated, not an image), when it has one
-            raise _fail(
-                path, f"unreadable image ({err.__class__.__name__})", "replace it with a valid PNG/JPEG"
-            ) from None
+        size = _image_size(path)
         want = (int(round(intr[4].item())), int(round(intr[5].item())))
         if size != want:
             raise _fail(
@@ -344,6 +433,17 @@ def _check_sizes(frames: SplitFrames) -> None:
                 f"image is {size[0]}x{size[1]} but {frames.json_path.name} says {want[0]}x{want[1]}",
                 "fix w/h in the json",
             )
+
+
+def _image_size(path: Path) -> Tuple[int, int]:
+    """``(width, height)`` from the header; files PIL cannot open (float32 RGB TIFFs, which the reader
+    supports) are decoded in full, and an unreadable file raises the reader's one-line reason."""
+    try:
+        with Image.open(path) as im:
+            return im.size
+    except OSError:
+        arr = read_raw(path)
+        return arr.shape[1], arr.shape[0]
 
 
 def downscaled_copy(path: Path, factor: int) -> Path:
@@ -356,9 +456,8 @@ def downscaled_copy(path: Path, factor: int) -> Path:
     digest = hashlib.sha1(f"{path.resolve()}|{path.stat().st_mtime_ns}|{path.stat().st_size}".encode()).hexdigest()[:16]
     folder = default_cache_dir() / "downscaled" / f"x{factor}"
     out = folder / f"{digest}_{path.stem}.png"
-    with Image.open(path) as im:
-        # Floor, as nerfstudio's Cameras.rescale_output_resolution does for the intrinsics.
-        size = (int(im.width / factor), int(im.height / factor))
+    width, height = _image_size(path)
+    size = (int(width / factor), int(height / factor))  # floor, as Cameras.rescale_output_resolution does
     if out.exists():
         try:
             cached = read_raw(out)
