@@ -15,13 +15,12 @@ import tyro
 from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
-from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 from naka_gs_plugin.datamanager import LowLightDatamanagerConfig
 from naka_gs_plugin.model.naka_gs_model import NakaGSModelConfig
 from naka_gs_plugin.pipeline import NakaGSPipelineConfig
-from naka_gs_plugin.trainer import NakaGSTrainer
+from naka_gs_plugin.trainer import NakaGSTrainerConfig
 
 CUDA = torch.cuda.is_available()
 MAX_STEPS = 30000 if CUDA else 7000
@@ -69,9 +68,9 @@ def _adam(lr: float, final: float | None = None, warmup: int = 0, internal: bool
 
 
 naka_gs_method = MethodSpecification(
-    config=TrainerConfig(
-        # Atomic checkpoints, Ctrl-C saves the current step, resume skips corrupt checkpoints.
-        _target=NakaGSTrainer,
+    config=NakaGSTrainerConfig(
+        # NakaGSTrainer: atomic checkpoints, Ctrl-C / SIGTERM save the current step, resume skips corrupt
+        # checkpoints; the config: run folders are never overwritten, ns-eval & co. load their own folder's.
         method_name="naka-gs",
         steps_per_eval_image=100,
         steps_per_eval_batch=0,

@@ -4,7 +4,7 @@ Training images are enhanced once, after loading and undistortion, by the config
 :class:`~naka_gs_plugin.enhance.pipeline.Enhancer` (disk-cached); eval images are never touched,
 so metrics compare renders against the real normal-light ground truth. Scenes without
 ground-truth eval images (RealX3D) train without evaluation, and anything asking for eval images
-gets a one-line :class:`MissingGroundTruthError`.
+gets a one-line :class:`MissingGroundTruthError` (an exit, not a traceback).
 """
 
 from __future__ import annotations
@@ -28,8 +28,9 @@ from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
 
 
-class MissingGroundTruthError(RuntimeError):
-    """Raised when an operation needs eval images that the scene does not have."""
+class MissingGroundTruthError(SystemExit):
+    """Raised when an operation needs eval images that the scene does not have: a ``SystemExit`` whose
+    message is the one line ``ns-eval`` prints (exit status 1), with no traceback."""
 
 
 class LowLightDataset(InputDataset):
@@ -142,7 +143,7 @@ class LowLightDatamanager(FullImageDatamanager[LowLightDataset]):
 
     def _no_gt_message(self) -> str:
         return (
-            f"{self.config.dataparser.data}: the '{self.test_split}' split has no ground-truth images "
+            f"naka-gs: {self.config.dataparser.data}: the '{self.test_split}' split has no ground-truth images "
             "(its transforms json points at missing files), so there is nothing to evaluate against -- "
             "use a scene with test images (e.g. LOM, or a naka-gs-sim scene) for metrics"
         )

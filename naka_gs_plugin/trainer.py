@@ -5,9 +5,17 @@
   write cut short (full disk, kill) never replaces or poses as a valid ``step-*.ckpt``.
 - ``--load-dir`` / ``--load-checkpoint`` skip a corrupt or truncated checkpoint for the newest valid
   older one, and fail with one line naming the folder when none is valid.
+- SIGTERM is handled as Ctrl-C; either one before the first training step has finished (while the
+  training images load and are enhanced, which can take minutes) stops at once, nothing to save.
+
+``NakaGSTrainerConfig`` makes the run folder trustworthy: ``ns-train`` refuses a run folder that already
+holds another run, a missing ``--data`` or an unwritable ``--output-dir`` is one line and leaves no
+folder, and ``ns-eval`` / ``ns-render`` / ``ns-export`` / ``ns-viewer`` load the newest valid checkpoint
+of the folder their config.yml is in (a copied or moved run loads its own checkpoints).
 
 Only the hooks are overridden; loading the chosen file is still upstream's code. The upstream methods
-whose behaviour this relies on are pinned by source hash in ``tests/test_trainer_safety.py``.
+whose behaviour this relies on are pinned by source hash in ``tests/test_trainer_safety.py`` and
+``tests/test_run_folder.py``.
 """
 
 from __future__ import annotations
@@ -16,18 +24,23 @@ import os
 import re
 import secrets
 import signal
+import sys
 import threading
+import time
 import zipfile
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal, NoReturn, Optional
+from types import FrameType
+from typing import List, Literal, NoReturn, Optional, Sequence, Type
 
 import torch
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
-from nerfstudio.engine.trainer import Trainer
+from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.rich_utils import CONSOLE
 
-INTERRUPTED_EXIT_CODE = 130  # 128 + SIGINT, what shells report for a Ctrl-C'd command
+INTERRUPTED_EXIT_CODE = 130  # 128 + SIGINT, what shells report for a Ctrl-C'd command; SIGTERM exits with it too
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 CHECKPOINT_NAME = re.compile(r"step-(\d+)\.ckpt")
 # Upstream's ns-eval/ns-viewer/ns-export parse every name in the checkpoint folder as int(name[first "-" + 1 :
 # first "."]) and take the largest (eval_utils.eval_load_checkpoint). A temporary file left by a kill
@@ -53,10 +66,33 @@ def is_valid_checkpoint(path: Path) -> bool:
         return False
 
 
+def checkpoints_newest_first(folder: Path, up_to: Optional[int] = None) -> List[Path]:
+    """The ``step-*.ckpt`` files in ``folder`` (none if it is missing), largest step first; only steps
+    <= ``up_to`` when given."""
+    found = [p for p in folder.glob("step-*.ckpt") if checkpoint_step(p) is not None] if folder.is_dir() else []
+    found = [p for p in found if up_to is None or checkpoint_step(p) <= up_to]  # type: ignore[operator]
+    return sorted(found, key=checkpoint_step, reverse=True)  # type: ignore[arg-type]
+
+
 def newest_checkpoint(folder: Path) -> Optional[Path]:
     """The ``step-*.ckpt`` in ``folder`` with the largest step, if any."""
-    found = [p for p in folder.glob("step-*.ckpt") if checkpoint_step(p) is not None] if folder.is_dir() else []
-    return max(found, key=checkpoint_step, default=None)  # type: ignore[arg-type]
+    return next(iter(checkpoints_newest_first(folder)), None)
+
+
+def first_valid_checkpoint(candidates: Sequence[Path], folder: Path, verb: str) -> Optional[Path]:
+    """The first valid checkpoint of ``candidates`` (newest first), else None; when it is not the first,
+    one line names the ones skipped and what ``verb`` ("resuming from", "loading") now uses."""
+    for i, path in enumerate(candidates):
+        if is_valid_checkpoint(path):
+            if i:
+                skipped = ", ".join(p.name for p in candidates[:i])
+                CONSOLE.print(
+                    f"naka-gs: skipping corrupt or truncated {skipped} in {folder}; {verb} {path.name}",
+                    markup=False,
+                    soft_wrap=True,
+                )
+            return path
+    return None
 
 
 def _fsync_dir(folder: Path) -> None:
@@ -70,66 +106,86 @@ def _fsync_dir(folder: Path) -> None:
 
 
 class NakaGSTrainer(Trainer):
-    """nerfstudio's ``Trainer`` with atomic checkpoints, Ctrl-C saving and corrupt-checkpoint fallback."""
+    """nerfstudio's ``Trainer`` with atomic checkpoints, Ctrl-C / SIGTERM saving and corrupt-checkpoint fallback."""
 
     def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
-        """Upstream's setup, plus a callback that records the last fully completed step."""
-        self._sigint_step: Optional[int] = None  # the step running when the first Ctrl-C came
+        """Upstream's setup, plus a callback that records the last fully completed step. A setup that fails
+        removes the run folder ``save_config`` has just made (nothing was trained into it)."""
+        self._stop_step: Optional[int] = None  # the step running when the first Ctrl-C / SIGTERM came
+        self._stop_name = "interrupted"  # "Ctrl-C" or "SIGTERM" once one came
         self._done_step: Optional[int] = None  # the last step whose iteration and callbacks finished
-        self._deferring_sigint = False  # whether _on_sigint is installed (then _previous_sigint is restored)
-        self._previous_sigint = None
+        self._previous_handlers: dict = {}  # the signal handlers _on_stop_signal replaced (restored after)
+        self._catch_stop_signals()
         try:
             super().setup(test_mode=test_mode)
         except KeyboardInterrupt:
-            self._exit_interrupted(f"interrupted during setup, before any training step; {self._newest_note()}")
+            self._discard_new_run_folder()
+            self._exit_interrupted(f"{self._stop_name} during setup, before any training step; {self._newest_note()}")
+        except BaseException:
+            self._discard_new_run_folder()
+            raise
+        finally:
+            self._release_stop_signals()
         self.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self._step_done))
 
     def train(self) -> None:
-        """Upstream's training loop with Ctrl-C deferred to the end of the running step.
+        """Upstream's training loop with Ctrl-C / SIGTERM deferred to the end of the running step.
 
         Stopping between steps matters: an interrupt inside densification or an optimizer step would
-        save parameters and optimizer state that no longer match."""
-        # Handlers can only be set in the main thread; an ignored SIGINT (nohup, `cmd &` in a script) stays ignored.
-        if threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGINT) != signal.SIG_IGN:
-            self._previous_sigint = signal.signal(signal.SIGINT, self._on_sigint)
-            self._deferring_sigint = True
+        save parameters and optimizer state that no longer match. Before the first step has finished
+        (the training images load and are enhanced inside it) there is nothing to save: it stops at once."""
+        self._catch_stop_signals()
         try:
             super().train()
         except KeyboardInterrupt:
-            if self.training_state == "completed" and not self._deferring_sigint:
+            if self.training_state == "completed" and not self._previous_handlers:
                 raise  # upstream's "Ctrl-C to quit" the viewer after a finished training: keep its behaviour
+            if self._done_step is None:
+                self._exit_interrupted(
+                    f"{self._stop_name} before the first training step finished, nothing to save (enhanced "
+                    f"images already cached are kept); {self._newest_note()}"
+                )
             self._exit_interrupted(f"interrupted again during step {self.step}, not saved; {self._newest_note()}")
         finally:
-            self._release_sigint()
+            self._release_stop_signals()
 
-    def _on_sigint(self, signum, frame) -> None:
-        if self._sigint_step is not None:
-            raise KeyboardInterrupt
-        self._sigint_step = self.step
+    def _catch_stop_signals(self) -> None:
+        # Handlers can only be set in the main thread; an ignored signal (nohup, `cmd &` in a script) stays ignored.
+        if threading.current_thread() is not threading.main_thread():
+            return
+        for signum in STOP_SIGNALS:
+            if signal.getsignal(signum) != signal.SIG_IGN:
+                self._previous_handlers[signum] = signal.signal(signum, self._on_stop_signal)
+
+    def _on_stop_signal(self, signum, frame) -> None:
+        if self._stop_step is not None or self._done_step is None:
+            self._stop_name = "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name
+            raise KeyboardInterrupt  # a second one, or nothing trained yet: stop now
+        self._stop_name = "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name
+        self._stop_step = self.step
         self.stop_training = True  # also ends upstream's pause loop; _step_done re-sets it if train() resets it
         CONSOLE.print(
-            f"naka-gs: Ctrl-C: finishing step {self.step}, then saving a checkpoint "
-            "(Ctrl-C again: quit without saving)",
+            f"naka-gs: {self._stop_name}: finishing step {self.step}, then saving a checkpoint "
+            f"({self._stop_name} again: quit without saving)",
             markup=False,
             soft_wrap=True,
         )
 
     def _step_done(self, step: int) -> None:
         self._done_step = step
-        if self._sigint_step is not None:
+        if self._stop_step is not None:
             self.stop_training = True
 
-    def _release_sigint(self) -> None:
-        if self._deferring_sigint:
-            signal.signal(signal.SIGINT, self._previous_sigint or signal.SIG_DFL)  # None: a handler set outside Python
-            self._deferring_sigint = False
+    def _release_stop_signals(self) -> None:
+        for signum, previous in self._previous_handlers.items():
+            signal.signal(signum, previous or signal.SIG_DFL)  # None: a handler set outside Python
+        self._previous_handlers = {}
 
     def _after_train(self) -> None:
-        """On Ctrl-C: save the last completed step and exit 130; otherwise upstream's end of training."""
-        if self._sigint_step is None:
+        """On Ctrl-C / SIGTERM: save the last completed step and exit 130; otherwise upstream's end of training."""
+        if self._stop_step is None:
             return super()._after_train()
-        if self._done_step is None:
-            self._exit_interrupted(f"interrupted before the first step finished; {self._newest_note()}")
+        assert self._done_step is not None  # _on_stop_signal stops at once before the first step finished
         self.save_checkpoint(self._done_step)
         path = self.checkpoint_dir / f"step-{self._done_step:09d}.ckpt"
         self._exit_interrupted(
@@ -138,12 +194,25 @@ class NakaGSTrainer(Trainer):
 
     def _train_complete_viewer(self) -> None:
         """Upstream waits here for Ctrl-C after a finished training; let that Ctrl-C through as before."""
-        self._release_sigint()
+        self._release_stop_signals()
         super()._train_complete_viewer()
 
     def _newest_note(self) -> str:
         newest = newest_checkpoint(self.checkpoint_dir)
         return f"newest checkpoint of this run: {newest}" if newest else "this run saved no checkpoint"
+
+    def _discard_new_run_folder(self) -> None:
+        """Remove the config.yml and the folders that ``NakaGSTrainerConfig.save_config`` created for this
+        run; a folder that holds anything else (another process's run) stays."""
+        created = getattr(self.config, "_created_folders", None)
+        if not created:
+            return
+        (self.base_dir / "config.yml").unlink(missing_ok=True)
+        for folder in created:  # deepest first
+            try:
+                folder.rmdir()
+            except OSError:
+                return
 
     def _exit_interrupted(self, what: str) -> NoReturn:
         CONSOLE.print(f"naka-gs: {what}", markup=False, soft_wrap=True)
@@ -222,29 +291,144 @@ class NakaGSTrainer(Trainer):
         if config.load_dir is None and newest is None:
             candidates = [requested]  # a custom file name: nothing in its folder is known to be older
         else:
-            found = [p for p in folder.glob("step-*.ckpt") if checkpoint_step(p) is not None] if folder.is_dir() else []
-            candidates = sorted(
-                (p for p in found if newest is None or checkpoint_step(p) <= newest),  # type: ignore[operator]
-                key=checkpoint_step,  # type: ignore[arg-type]
-                reverse=True,
-            )
+            candidates = checkpoints_newest_first(folder, up_to=newest)
         if not candidates:
             raise SystemExit(
                 f"naka-gs: {flag} {folder}: no step-*.ckpt checkpoint there; "
                 "point it at a run's nerfstudio_models folder"
             )
-        for i, path in enumerate(candidates):
-            if is_valid_checkpoint(path):
-                if i:
-                    skipped = ", ".join(p.name for p in candidates[:i])
-                    CONSOLE.print(
-                        f"naka-gs: skipping corrupt or truncated {skipped} in {folder}; resuming from {path.name}",
-                        markup=False,
-                        soft_wrap=True,
-                    )
-                return path
+        chosen = first_valid_checkpoint(candidates, folder, "resuming from")
+        if chosen is not None:
+            return chosen
         raise SystemExit(
             f"naka-gs: {flag} {folder}: every checkpoint there is corrupt or truncated "
             f"({', '.join(p.name for p in candidates)}); resume from another run's nerfstudio_models folder, "
             f"or train from scratch without {flag}"
         )
+
+
+_IMPORTED_AT = time.time()
+"""When this process imported the plugin: every ``ns-*`` command does so before it parses its options."""
+
+
+def _eval_setup_config_path(frame: Optional[FrameType]) -> Optional[Path]:
+    """The config.yml that nerfstudio's ``eval_setup`` is loading when ``frame`` is that call, else None.
+
+    ``eval_setup(config_path)`` is where ``ns-eval``, ``ns-render``, ``ns-export``, ``ns-viewer`` (and our
+    demo and scene sheet) load a run, and it asks the config for its checkpoint folder right after reading
+    it. The config's own location is known only there: ``eval_setup`` parses the file's text, so the YAML
+    loader never sees the path, and ``--load-config`` on the command line is one spelling of it in four
+    CLIs (and means something else to ``ns-train``). Reading eval_setup's argument from the calling frame
+    is exact for every caller; the upstream function is pinned by source hash in tests/test_run_folder.py."""
+    if frame is None or frame.f_code.co_name != "eval_setup":
+        return None
+    if frame.f_globals.get("__name__") != "nerfstudio.utils.eval_utils":
+        return None
+    path = frame.f_locals.get("config_path")
+    return Path(path) if path is not None else None
+
+
+def _remove_new_empty_output_dir(eval_setup_frame: FrameType) -> None:
+    """``ns-export`` makes its ``--output-dir`` before it loads the checkpoint; when that load fails, remove
+    the folder again if it is empty and was made by this process (changed after the plugin was imported)."""
+    caller = eval_setup_frame.f_back
+    owner = caller.f_locals.get("self") if caller is not None else None
+    out = getattr(owner, "output_dir", None)
+    if type(owner).__module__ != "nerfstudio.scripts.exporter" or not isinstance(out, Path):
+        return
+    try:
+        if out.is_dir() and not any(out.iterdir()) and out.stat().st_mtime >= _IMPORTED_AT - 1.0:
+            out.rmdir()
+    except OSError:
+        pass
+
+
+@dataclass
+class NakaGSTrainerConfig(TrainerConfig):
+    """nerfstudio's ``TrainerConfig`` for :class:`NakaGSTrainer`, with a run folder that can be trusted.
+
+    Training: a run folder that already holds a run is refused (``--load-dir`` into it resumes it); a missing
+    ``--data`` or an unwritable ``--output-dir`` is one line, before any folder is made. Loading
+    (``eval_setup``): the run folder is the one config.yml is in, not the output path it records, so a
+    copied or moved run loads its own checkpoints; of those, the newest valid one."""
+
+    _target: Type = field(default_factory=lambda: NakaGSTrainer)
+
+    def set_timestamp(self) -> None:
+        """Upstream's timestamp, then refuse a run folder that already holds a run, unless this run resumes
+        it (``--load-dir`` / ``--load-checkpoint`` inside it). ``ns-train`` calls this just before it writes
+        config.yml; programs that manage their own run folders (benchmarks.grid) call ``save_config`` only."""
+        super().set_timestamp()
+        run = self.get_base_dir()
+        if not (run / "config.yml").exists():
+            return
+        models = (run / self.relative_model_dir).resolve()
+        resumed = [Path(self.load_dir)] if self.load_dir is not None else []
+        resumed += [Path(self.load_checkpoint).parent] if self.load_checkpoint is not None else []
+        if any(folder.resolve() == models for folder in resumed):
+            return
+        raise SystemExit(
+            f"naka-gs: {run} already holds a run (its config.yml); pick another --timestamp, "
+            f"or resume that run with --load-dir {run / self.relative_model_dir}"
+        )
+
+    def save_config(self) -> None:
+        """Upstream's config.yml, after checking ``--data`` exists; a folder that cannot be made or written is
+        one line. Records the folders it creates, which a failed ``NakaGSTrainer.setup`` removes again."""
+        data = self.pipeline.datamanager.data or self.pipeline.datamanager.dataparser.data
+        if data is not None and not Path(data).exists():
+            raise SystemExit(
+                f"naka-gs: --data {data}: no such scene folder; pass --data <folder with transforms_train.json>"
+            )
+        run = self.get_base_dir()
+        created = [folder for folder in (run, *run.parents) if not folder.exists()]  # deepest first
+        try:
+            super().save_config()
+        except OSError as err:
+            raise SystemExit(
+                f"naka-gs: cannot write the run folder {run} ({err.strerror or err}); pick a writable --output-dir"
+            ) from None
+        self._created_folders = created  # set after the YAML dump: not a field, never in config.yml
+
+    def get_base_dir(self) -> Path:
+        """The folder config.yml was loaded from, once ``eval_setup`` has loaded it; else upstream's
+        ``<output_dir>/<experiment_name>/<method_name>/<timestamp>``."""
+        loaded_from = getattr(self, "_loaded_from", None)
+        return loaded_from if loaded_from is not None else super().get_base_dir()
+
+    def get_checkpoint_dir(self) -> Path:
+        """Upstream's checkpoint folder; when ``eval_setup`` asks, that of the folder config.yml is in, with
+        ``load_step`` set to its newest valid checkpoint (one line names any skipped)."""
+        frame = sys._getframe(1)
+        config_path = _eval_setup_config_path(frame)
+        if config_path is None:
+            return super().get_checkpoint_dir()
+        here = config_path.absolute().parent
+        recorded = super().get_base_dir()
+        if recorded.resolve() != here.resolve():
+            CONSOLE.print(
+                f"naka-gs: {config_path} records its run folder as {recorded}; using the folder it is in, {here} "
+                "(a copied or moved run loads its own checkpoints)",
+                markup=False,
+                soft_wrap=True,
+            )
+        self._loaded_from = here
+        folder = super().get_checkpoint_dir()
+        # A load_step in config.yml next to a load_dir is the step that run resumed from, in another folder.
+        up_to = self.load_step if self.load_dir is None else None
+        candidates = checkpoints_newest_first(folder, up_to=up_to)
+        chosen = first_valid_checkpoint(candidates, folder, "loading")
+        if chosen is None:
+            _remove_new_empty_output_dir(frame)
+            if not candidates:
+                raise SystemExit(
+                    f"naka-gs: {folder}: no step-*.ckpt checkpoint there"
+                    + (f" at or before step {up_to}" if up_to is not None else "")
+                    + "; train this run first, or load the config.yml of a run that saved one"
+                )
+            raise SystemExit(
+                f"naka-gs: {folder}: every checkpoint there is corrupt or truncated "
+                f"({', '.join(p.name for p in candidates)}); nothing to load: train this run again"
+            )
+        self.load_step = checkpoint_step(chosen)
+        return folder

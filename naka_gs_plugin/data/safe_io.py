@@ -7,11 +7,13 @@
   folder we publish holds :data:`MARKER`, a json listing every file we wrote; a folder is only
   ever replaced when that marker exists and the folder holds nothing else.
 * Output folders are refused when they equal, contain or lie inside an input.
-* A cache directory that cannot be written falls back to a private temporary one, with one warning.
+* A cache directory that cannot be written falls back to a private temporary one, with one warning;
+  it is removed when the process exits.
 """
 
 from __future__ import annotations
 
+import atexit
 import json
 import os
 import secrets
@@ -168,6 +170,12 @@ def publish_dir(stage: Path, out: Path, tool: str, option: str, overwrite: Optio
 _fallback: Dict[Path, Path] = {}
 
 
+def _remove_fallback(folder: Path, pid: int) -> None:
+    """Remove a fallback cache when the process that made it exits (not a forked child of it)."""
+    if os.getpid() == pid:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
 def usable_cache_dir(preferred: Path) -> Path:
     """``preferred`` if a file can be created in it, else a private temporary folder (warned once).
 
@@ -184,6 +192,7 @@ def usable_cache_dir(preferred: Path) -> Path:
     except OSError as err:
         fallback = Path(tempfile.mkdtemp(prefix="naka-gs-cache-"))
         _fallback[preferred] = fallback
+        atexit.register(_remove_fallback, fallback, os.getpid())
         CONSOLE.log(
             f"[naka-gs] warning: cache {preferred} is not writable ({err.strerror or err}); using {fallback} for "
             "this run -- set NAKA_GS_CACHE to a writable folder to keep the cache between runs",

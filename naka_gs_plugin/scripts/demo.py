@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import copy
 import json
+import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -106,6 +107,9 @@ class Demo:
         config.pipeline.datamanager.dataparser.downscale_factor = 1
         config.pipeline.model.num_random = 20000
         config.pipeline.model.random_scale = 3.0  # covers the simulated scene's normalized extent
+        # The demo's own run of an earlier call goes, as its other outputs are replaced (ns-train refuses to
+        # train into a folder that holds a run).
+        shutil.rmtree(config.get_base_dir(), ignore_errors=True)
         start = time.perf_counter()
         train_main(config)
         train_seconds = time.perf_counter() - start
