@@ -67,6 +67,10 @@ class BenchSpecError(ValueError):
     """A grid file that cannot be run; the message names the file and the fix."""
 
 
+class BenchRunsFailed(RuntimeError):
+    """Every run of the grid failed (results and reports are written); one line."""
+
+
 @dataclass
 class GridSpec:
     """A parsed ``benchmarks/configs/*.yaml``."""
@@ -90,7 +94,17 @@ def load_grid(path: Path) -> GridSpec:
     if not path.is_file():
         shipped = sorted(f"benchmarks/configs/{p.name}" for p in (REPO / "benchmarks" / "configs").glob("*.yaml"))
         raise BenchSpecError(f"{path}: no such grid file -- pass one of {shipped}")
-    raw = yaml.safe_load(path.read_text()) or {}
+    try:
+        raw = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        problem = getattr(err, "problem", None) or str(err).splitlines()[0]
+        raise BenchSpecError(
+            f"{path}: malformed YAML ({problem}{where}) -- fix the syntax; see benchmarks/configs/smoke.yaml"
+        ) from None
+    if not isinstance(raw, dict):
+        raise BenchSpecError(f"{path}: not a mapping of name, scenes, milestones, base, families -- see smoke.yaml")
     unknown = set(raw) - {"name", "scenes", "milestones", "base", "families", "seed"}
     if unknown:
         raise BenchSpecError(
@@ -101,7 +115,13 @@ def load_grid(path: Path) -> GridSpec:
             raise BenchSpecError(
                 f"{path}: '{key}' is missing or empty -- see benchmarks/configs/smoke.yaml for the format"
             )
-    milestones = sorted(int(s) for s in raw["milestones"])
+    for key in ("scenes", "families"):
+        if not isinstance(raw[key], dict) or not isinstance(raw.get("base") or {}, dict):
+            raise BenchSpecError(f"{path}: '{key}' and 'base' are mappings (name: settings) -- see smoke.yaml")
+    try:
+        milestones = sorted(int(s) for s in raw["milestones"])
+    except (TypeError, ValueError):
+        raise BenchSpecError(f"{path}: milestones must be a list of step counts, got {raw['milestones']!r}") from None
     if milestones[0] < 1:
         raise BenchSpecError(f"{path}: milestones must be positive step counts, got {milestones}")
     scenes = {}
@@ -111,6 +131,8 @@ def load_grid(path: Path) -> GridSpec:
                 f"{path}: scene '{name}' needs exactly one of 'data: <scene dir>' or 'sim: <spec yaml>'"
             )
         scenes[name] = dict(scene)
+    if not all(isinstance(f or {}, dict) for f in raw["families"].values()):
+        raise BenchSpecError(f"{path}: every family is a mapping of settings ({{}} for none) -- see smoke.yaml")
     families = {name: dict(f or {}) for name, f in raw["families"].items()}
     spec = GridSpec(
         name=str(raw.get("name", path.stem)),
@@ -509,10 +531,12 @@ class Bench:
         results.setdefault("grid", spec.name)
         results.setdefault("runs", {})
         results["machine"] = machine_description()
+        selected = list(results["runs"])
         if not self.report_only:
             runs = [
                 r for r in grid_runs(spec, out) if not self.only or r["id"] in self.only or r["family"] in self.only
             ]
+            selected = [r["id"] for r in runs]
             todo = []
             for r in runs:
                 done = results["runs"].get(r["id"])
@@ -539,16 +563,34 @@ class Bench:
         CONSOLE.print(
             f"[naka-gs bench] wrote {results_path}, results.md, psnr_vs_seconds.png, psnr_vs_steps.png", markup=False
         )
+        failed = [rid for rid in selected if results["runs"][rid]["status"] == "failed"]
+        if failed:
+            first = f"{failed[0]}: {results['runs'][failed[0]].get('error', '')[:200]}"
+            if len(failed) == len(selected):
+                raise BenchRunsFailed(
+                    f"all {len(failed)} runs failed (first {first}) -- see {out}/results.md and each run's "
+                    "logs/<scene>/<family>/log.txt"
+                )
+            CONSOLE.print(
+                f"[naka-gs bench] warning: {len(failed)} of {len(selected)} runs failed ({', '.join(failed)}); "
+                "results.md lists their errors",
+                markup=False,
+                soft_wrap=True,
+            )
         return results
 
 
 def entrypoint(args: Optional[Sequence[str]] = None) -> None:
-    """``python -m benchmarks.grid``; a bad grid prints one line and exits with status 2."""
+    """``python -m benchmarks.grid``; a bad grid prints one line and exits with status 2, a grid whose
+    every run failed with status 1."""
     try:
         tyro.cli(Bench, args=args).main()
     except BenchSpecError as err:
-        CONSOLE.print(f"[naka-gs bench] error: {err}", markup=False)
+        CONSOLE.print(f"[naka-gs bench] error: {err}", markup=False, soft_wrap=True)
         raise SystemExit(2) from None
+    except BenchRunsFailed as err:
+        CONSOLE.print(f"[naka-gs bench] error: {err}", markup=False, soft_wrap=True)
+        raise SystemExit(1) from None
 
 
 if __name__ == "__main__":

@@ -3,7 +3,7 @@
 Each case builds its inputs under ``tmp`` (copies of the toy scene; nothing shared is modified)
 and returns the action plus the paths that must not change (files, or folders compared by their
 whole tree). Outcomes: ``Raises`` (exception type + message substring, one line), ``Exits`` (a
-console script's exit status + one-line message) or ``Ok`` (a check of the result).
+console script's exit status + one-line message, the last line it prints) or ``Ok`` (a check of the result).
 """
 
 from __future__ import annotations
@@ -27,6 +27,7 @@ from naka_gs_plugin.data.lowlight_dataparser import LowLightDataError, LowLightD
 from naka_gs_plugin.data.safe_io import MARKER, UnsafeOutputError, atomic_write
 from naka_gs_plugin.datamanager import LowLightDatamanagerConfig
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
+from naka_gs_plugin.points.sources import PointSourceError
 from naka_gs_plugin.scripts import enhance as enhance_cli
 from naka_gs_plugin.scripts import sim as sim_cli
 from naka_gs_plugin.scripts.process_data import ProcessData, ProcessDataError
@@ -474,6 +475,95 @@ def img_float32_tiff_with_nan(env):
     return datamanager(s), [s]
 
 
+def colmap_model(folder: Path, n_points: int = 50) -> Path:
+    """A small binary COLMAP model in ``folder`` (one camera, one image, ``n_points`` points)."""
+    import pycolmap
+
+    text = folder.parent / "text"
+    text.mkdir(parents=True)
+    (text / "cameras.txt").write_text("1 PINHOLE 64 48 50 50 32 24\n")
+    (text / "images.txt").write_text("1 1 0 0 0 0 0 4 1 0000.png\n\n")
+    rng = np.random.default_rng(0)
+    (text / "points3D.txt").write_text(
+        "".join(f"{i + 1} {x} {y} {z} 9 9 9 0.5\n" for i, (x, y, z) in enumerate(rng.normal(size=(n_points, 3))))
+    )
+    folder.mkdir(parents=True)
+    pycolmap.Reconstruction(str(text)).write_binary(str(folder))
+    shutil.rmtree(text)
+    return folder
+
+
+def seed_points(env, scene: Path, **init) -> Action:
+    from naka_gs_plugin.points.seeding import PointInitConfig, TrainingFrame, resolve_seed_points
+
+    return lambda: resolve_seed_points(PointInitConfig(**init), TrainingFrame.from_scene(scene))
+
+
+def seed_truncated_colmap_points(env):
+    """The scene's own sparse/0 with points3D.bin cut short (pycolmap alone: std::bad_alloc, or minutes)."""
+    s = env.scene()
+    truncate(colmap_model(s / "sparse" / "0") / "points3D.bin")
+    return seed_points(env, s), [s]
+
+
+def far_ply(env, n_far: int) -> Path:
+    from naka_gs_plugin.points.sources import write_ply
+
+    xyz = np.random.default_rng(0).normal(size=(300, 3))
+    xyz[:n_far] = 1e30
+    write_ply(env.tmp / "points.ply", xyz, None)
+    return env.tmp / "points.ply"
+
+
+def seed_ply_all_at_1e30(env):
+    s, ply = env.scene(), far_ply(env, 300)
+    return seed_points(env, s, points=str(ply), align="none"), [s, ply]
+
+
+def seed_ply_some_at_1e30(env):
+    s, ply = env.scene(), far_ply(env, 3)
+    return seed_points(env, s, points=str(ply), align="none"), [s, ply]
+
+
+def _far_dropped_with_warning(env, seeded):
+    assert seeded.xyz.shape[0] == 297 and np.abs(seeded.xyz).max() < 10
+    assert env.log().count("warning: PLY") == 1
+
+
+def ppm_out_unwritable_console(env):
+    from naka_gs_plugin.scripts import ppm
+
+    ply = far_ply(env, 0)
+    return run_console(env, ppm.entrypoint, ["naka-gs-ppm", str(ply), "--out", "/proc/naka-gs.ply"]), [ply]
+
+
+def ppm_out_is_the_input(env):
+    from naka_gs_plugin.scripts import ppm
+
+    ply = far_ply(env, 0)
+    return run_console(env, ppm.entrypoint, ["naka-gs-ppm", str(ply), "--out", str(ply)]), [ply]
+
+
+def grid_console(env, text: str) -> Action:
+    from benchmarks import grid
+
+    path = env.tmp / "grid.yaml"
+    path.write_text(text)
+    return run_console(env, grid.entrypoint, ["benchmarks.grid", str(path), "--out", str(env.tmp / "out")])
+
+
+def grid_malformed_yaml(env):
+    return grid_console(env, "name: x\nscenes: {toy: {data: S}\nmilestones: [3\n"), [env.tmp / "grid.yaml"]
+
+
+def grid_every_run_failed(env):
+    """Both runs fail at once (a scene without test views): recorded, and the grid exits 1 saying so."""
+    s = env.scene()
+    (s / "transforms_test.json").unlink()
+    text = f"name: x\nscenes: {{toy: {{data: {s}}}}}\nmilestones: [3]\nfamilies: {{a: {{}}, b: {{enhance: none}}}}\n"
+    return grid_console(env, text), [s, env.tmp / "grid.yaml"]
+
+
 def cache_nested_writes_use_unique_temporaries(env):
     """Two writers of one cache entry at once (as two ns-train runs): neither clobbers the other's temp file."""
     target = env.tmp / "cache" / "entry.npy"
@@ -723,6 +813,16 @@ CASES: List[Tuple[Callable[[Env], Tuple[Action, List[Path]]], object]] = [
     (cam_distortion_absurd, Raises(LowLightDataError, "distortion k1=50, k2=-80 scales the image corner by 3.07")),
     (img_float32_tiff_trains, Ok(_all_loaded)),
     (img_float32_tiff_with_nan, Raises(ImageReadError, "0000.tif: 1 pixels are NaN/Inf")),
+    (
+        seed_truncated_colmap_points,
+        Raises(PointSourceError, "points3D.bin: unreadable COLMAP model file, truncated or corrupt (record"),
+    ),
+    (seed_ply_all_at_1e30, Raises(PointSourceError, "300 of 300 points lie over 10000x the camera spread away")),
+    (seed_ply_some_at_1e30, Ok(_far_dropped_with_warning)),
+    (ppm_out_unwritable_console, Exits(2, "--out /proc/naka-gs.ply: cannot write it")),
+    (ppm_out_is_the_input, Exits(2, "is an input of this run")),
+    (grid_malformed_yaml, Exits(2, "grid.yaml: malformed YAML (expected ',' or '}', but got '<scalar>' at line 3")),
+    (grid_every_run_failed, Exits(1, "all 2 runs failed (first toy/a: BenchSpecError:")),
     (cache_nested_writes_use_unique_temporaries, Ok(_last_writer_wins)),
     (cache_imwrite_fails, Raises(LowLightDataError, "cannot write the downscaled copy", _nothing_committed)),
     (
@@ -771,7 +871,9 @@ def test_bad_input(make, expect, toy_scene, tmp_path, monkeypatch, capsys):
         with pytest.raises(SystemExit) as err:
             action()
         code = err.value.code
-        printed = code if isinstance(code, str) else env.capsys.readouterr().out.strip()
+        out, errors = env.capsys.readouterr()
+        assert "Traceback" not in out + errors, out + errors
+        printed = code if isinstance(code, str) else out.strip().splitlines()[-1]  # after the run's own log lines
         assert (1 if isinstance(code, str) else code) == expect.code
         assert expect.message in printed and "\n" not in printed, printed
     else:

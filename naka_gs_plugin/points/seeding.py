@@ -37,6 +37,12 @@ from naka_gs_plugin.points.sources import PointCloud, PointSourceError, find_sce
 CACHE_VERSION = 1
 """Bump when the seeding maths change, so stale cached clouds are never read."""
 MIN_SEED_POINTS = 4
+MAX_SEED_COORD = 1e4
+"""Farthest seed point kept, in normalized units (the training cameras fill [-1, 1]).
+
+Measured: the real COLMAP models of LOM (bike, chair, shrub, sofa) reach 7 to 31 (their farthest
+background points). Past 1e4 a coordinate is a placeholder or a unit error (1e30), not geometry; it
+would also overflow PPM's voxel keys."""
 """Splatfacto sizes each seed Gaussian by its 3 nearest neighbours."""
 
 
@@ -191,17 +197,24 @@ def prepare_points(
         "frame": "normalized" if normalized else ("source" if frame is None else "training (normalized)"),
     }
     xyz = cloud.xyz
+    rgb = cloud.rgb
     if frame is not None and not normalized:
         xyz, summary["alignment"] = align_cloud(cloud, frame, init.align)
         xyz = frame.normalize(xyz)
+    if frame is not None or normalized:
+        xyz, rgb = _drop_far(xyz, rgb, cloud.source, summary)
     t1 = time.perf_counter()
-    rgb = cloud.rgb
     if init.ppm:
         pool_rgb = rgb if rgb is not None else np.zeros(xyz.shape, np.uint8)
-        xyz, pool_rgb, ppm_summary = run_ppm(
-            xyz, pool_rgb, voxel=init.voxel_size, tau0=init.tau0, beta=init.beta, iterations=init.iterations,
-            min_points=init.min_points, seed=init.seed, tau_update=init.tau_update,
-        )  # fmt: skip
+        try:
+            xyz, pool_rgb, ppm_summary = run_ppm(
+                xyz, pool_rgb, voxel=init.voxel_size, tau0=init.tau0, beta=init.beta, iterations=init.iterations,
+                min_points=init.min_points, seed=init.seed, tau_update=init.tau_update,
+            )  # fmt: skip
+        except ValueError as err:  # e.g. coordinates too large for the voxel keys (source frame: no far check)
+            raise PointSourceError(
+                f"{cloud.source}: PPM cannot pool it ({err}) -- check the file's coordinates"
+            ) from None
         rgb = pool_rgb if rgb is not None else None
         summary["ppm"] = ppm_summary
     else:
@@ -215,6 +228,26 @@ def prepare_points(
     summary["final_count"] = int(xyz.shape[0])
     summary["timings_s"] = {"align_normalize": t1 - t0, "ppm": time.perf_counter() - t1}
     return xyz, rgb, summary
+
+
+def _drop_far(
+    xyz: Float[np.ndarray, "N 3"], rgb: Optional[np.ndarray], source: str, summary: Dict[str, Any]
+) -> Tuple[Float[np.ndarray, "K 3"], Optional[np.ndarray]]:
+    """Points of the training frame within :data:`MAX_SEED_COORD`: the rest dropped with one warning,
+    or a one-line :class:`PointSourceError` when that leaves none."""
+    with np.errstate(invalid="ignore"):
+        far = np.abs(xyz).max(axis=1, initial=0.0) > MAX_SEED_COORD
+    summary["far_dropped"] = int(far.sum())
+    if not far.any():
+        return xyz, rgb
+    where = f"{source}: {int(far.sum())} of {len(xyz)} points lie over {MAX_SEED_COORD:g}x the camera spread away"
+    if far.all():
+        raise PointSourceError(
+            f"{where} (coordinates like {np.abs(xyz).max():.3g}) -- not geometry of this scene: fix the file, "
+            "or pass --pipeline.init.points auto / random"
+        )
+    log_points(f"warning: {where} (placeholders or a unit error); seeding without them")
+    return xyz[~far], None if rgb is None else rgb[~far]
 
 
 def describe(summary: Dict[str, Any]) -> str:

@@ -22,12 +22,15 @@ Supported inputs (``load_points``):
 from __future__ import annotations
 
 import json
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional
 
 import numpy as np
 from jaxtyping import Float, UInt8
+
+from naka_gs_plugin.data.safe_io import atomic_write
 
 SCENE_SOURCES = ("sparse/0", "sparse", "colmap_sparse/0", "points.ply")
 """``auto`` candidates inside a scene folder, in order: ``naka-gs-process-data``'s model, a VGGT
@@ -140,9 +143,64 @@ def _centres(rec) -> Dict[str, np.ndarray]:
     return {im.name: np.asarray(im.projection_center(), np.float64) for im in rec.images.values() if im.has_pose}
 
 
+COLMAP_CAMERA_PARAMS = {0: 3, 1: 4, 2: 4, 3: 5, 4: 8, 5: 8, 6: 12, 7: 5, 8: 4, 9: 5, 10: 12, 11: 16}
+"""COLMAP camera model id -> number of parameters (cameras.bin)."""
+
+
+def _check_colmap_binary(folder: Path) -> None:
+    """Walk the record structure of ``cameras.bin``, ``images.bin`` and ``points3D.bin`` (COLMAP's
+    documented layout) and refuse a file cut short or with trailing bytes, in one line.
+
+    pycolmap itself does not check: a truncated ``points3D.bin`` makes it allocate garbage sizes
+    (``std::bad_alloc``), and an empty one keeps it busy for minutes.
+    """
+    for name in ("cameras.bin", "images.bin", "points3D.bin"):
+        path = folder / name
+        if path.is_file():
+            problem = _colmap_binary_problem(name, path.read_bytes())
+            if problem:
+                raise PointSourceError(
+                    f"{path}: unreadable COLMAP model file, truncated or corrupt ({problem}) -- copy the model again, or re-run "
+                    "naka-gs-process-data / COLMAP"
+                )
+
+
+def _colmap_binary_problem(name: str, data: bytes) -> Optional[str]:
+    """Why ``data`` is not a whole COLMAP ``name`` file, or None."""
+    end = len(data)
+    if end < 8:
+        return f"{end} bytes, no record count"
+    (total,) = struct.unpack_from("<Q", data, 0)
+    pos = 8
+    for record in range(total):
+        fixed = {"cameras.bin": 24, "images.bin": 64, "points3D.bin": 51}[name]
+        if pos + fixed > end:
+            return f"record {record + 1} of {total} runs past the end at byte {end}"
+        if name == "cameras.bin":
+            (model,) = struct.unpack_from("<i", data, pos + 4)
+            if model not in COLMAP_CAMERA_PARAMS:
+                return f"camera {record + 1} has unknown model id {model}"
+            pos += fixed + 8 * COLMAP_CAMERA_PARAMS[model]
+        elif name == "images.bin":
+            nul = data.find(b"\0", pos + fixed)  # the image name, NUL-terminated
+            if nul < 0 or nul + 9 > end:
+                return f"record {record + 1} of {total} runs past the end at byte {end}"
+            (points2d,) = struct.unpack_from("<Q", data, nul + 1)
+            pos = nul + 9 + 24 * points2d
+        else:
+            (track,) = struct.unpack_from("<Q", data, pos + 43)
+            pos += fixed + 8 * track
+        if pos > end:
+            return f"record {record + 1} of {total} runs past the end at byte {end}"
+    if pos != end:
+        return f"{end - pos} bytes after its {total} records"
+    return None
+
+
 def _read_colmap(folder: Path):
     import pycolmap
 
+    _check_colmap_binary(folder)
     try:
         return pycolmap.Reconstruction(str(folder))
     except (RuntimeError, ValueError, OSError) as err:  # COLMAP's C++ checks surface as these
@@ -215,7 +273,8 @@ def source_files(path: Path) -> List[Path]:
 
 
 def write_ply(path: Path, xyz: Float[np.ndarray, "N 3"], rgb: Optional[UInt8[np.ndarray, "N 3"]]) -> None:
-    """Binary little-endian PLY: float32 ``x y z`` (+ uchar ``red green blue``)."""
+    """Binary little-endian PLY: float32 ``x y z`` (+ uchar ``red green blue``), written atomically
+    (an existing ``path`` stays whole when the write fails)."""
     from plyfile import PlyData, PlyElement
 
     fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
@@ -228,4 +287,4 @@ def write_ply(path: Path, xyz: Float[np.ndarray, "N 3"], rgb: Optional[UInt8[np.
         for i, k in enumerate(("red", "green", "blue")):
             vertex[k] = rgb[:, i]
     path.parent.mkdir(parents=True, exist_ok=True)
-    PlyData([PlyElement.describe(vertex, "vertex")], text=False).write(str(path))
+    atomic_write(path, lambda tmp: PlyData([PlyElement.describe(vertex, "vertex")], text=False).write(str(tmp)))

@@ -20,8 +20,13 @@ from typing import Optional, Sequence
 import tyro
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from naka_gs_plugin.data.safe_io import atomic_write_bytes
 from naka_gs_plugin.points.seeding import PointInitConfig, PPMSettings, TrainingFrame, describe, prepare_points
-from naka_gs_plugin.points.sources import PointSourceError, find_scene_source, load_points, write_ply
+from naka_gs_plugin.points.sources import PointSourceError, find_scene_source, load_points, source_files, write_ply
+
+
+class PpmOutputError(ValueError):
+    """The output cannot be written (read-only place, a file in the way, an input); one line."""
 
 
 @dataclass(kw_only=True)
@@ -49,6 +54,10 @@ class Ppm(PPMSettings):
                     "pass a point file, or train with --pipeline.init.points auto to triangulate"
                 )
             source = found
+        inputs = source_files(source) + ([scene / "transforms_train.json"] if scene is not None else [])
+        for out in (self.out, self.summary or self.out.with_suffix(".json")):
+            if out.resolve() in {p.resolve() for p in inputs}:
+                raise PpmOutputError(f"--out {out}: is an input of this run -- choose another output path")
         cloud = load_points(source)
         frame = TrainingFrame.from_scene(scene) if scene is not None else None
         if frame is None:
@@ -60,11 +69,20 @@ class Ppm(PPMSettings):
         init = PointInitConfig(points=str(source), **{f.name: getattr(self, f.name) for f in fields(PPMSettings)})
         xyz, rgb, summary = prepare_points(cloud, frame, init)
         summary["scene"] = str(scene) if scene is not None else None
-        write_ply(self.out, xyz, rgb)
         summary["output"] = str(self.out)
         summary_path = self.summary or self.out.with_suffix(".json")
-        summary_path.parent.mkdir(parents=True, exist_ok=True)
-        summary_path.write_text(json.dumps(summary, indent=1))
+        option, written = "--out", self.out
+        try:
+            write_ply(self.out, xyz, rgb)
+            option, written = "--summary", summary_path
+            summary_path.parent.mkdir(parents=True, exist_ok=True)
+            atomic_write_bytes(summary_path, json.dumps(summary, indent=1).encode())
+        except OSError as err:
+            in_the_way = isinstance(err, (FileExistsError, NotADirectoryError))
+            reason = f"{written.parent} is not a folder" if in_the_way else (err.strerror or str(err))
+            raise PpmOutputError(
+                f"{option} {written}: cannot write it ({reason}) -- choose a writable {option}"
+            ) from None
         CONSOLE.log(f"[naka-gs] {describe(summary)}; wrote {self.out} and {summary_path}", markup=False)
         return summary
 
@@ -74,7 +92,7 @@ def entrypoint(args: Optional[Sequence[str]] = None) -> None:
     try:
         tyro.cli(Ppm, args=args, config=(tyro.conf.FlagConversionOff,)).main()  # --ppm True/False, as ns-train
     except (PointSourceError, ValueError) as err:
-        CONSOLE.print(f"[naka-gs] error: {err}", markup=False, style="bold red")
+        CONSOLE.print(f"[naka-gs] error: {err}", markup=False, style="bold red", soft_wrap=True)
         raise SystemExit(2) from None
 
 
