@@ -564,6 +564,16 @@ def grid_every_run_failed(env):
     return grid_console(env, text), [s, env.tmp / "grid.yaml"]
 
 
+def correction_resume_garbage_console(env):
+    """Checked before any data is read or the output folder is made."""
+    from naka_gs_plugin.scripts import train_correction
+
+    garbage = env.tmp / "latest.pt"
+    garbage.write_text("not a checkpoint")
+    argv = ["naka-gs-train-correction", "--resume", str(garbage), "--output-dir", str(env.tmp / "out")]
+    return run_console(env, train_correction.entrypoint, argv), [garbage, env.tmp]
+
+
 def cache_nested_writes_use_unique_temporaries(env):
     """Two writers of one cache entry at once (as two ns-train runs): neither clobbers the other's temp file."""
     target = env.tmp / "cache" / "entry.npy"
@@ -823,6 +833,7 @@ CASES: List[Tuple[Callable[[Env], Tuple[Action, List[Path]]], object]] = [
     (ppm_out_is_the_input, Exits(2, "is an input of this run")),
     (grid_malformed_yaml, Exits(2, "grid.yaml: malformed YAML (expected ',' or '}', but got '<scalar>' at line 3")),
     (grid_every_run_failed, Exits(1, "all 2 runs failed (first toy/a: BenchSpecError:")),
+    (correction_resume_garbage_console, Exits(1, "latest.pt is not a readable torch checkpoint (UnpicklingError)")),
     (cache_nested_writes_use_unique_temporaries, Ok(_last_writer_wins)),
     (cache_imwrite_fails, Raises(LowLightDataError, "cannot write the downscaled copy", _nothing_committed)),
     (

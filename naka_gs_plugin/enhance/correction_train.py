@@ -413,6 +413,21 @@ def training_device(name: str) -> torch.device:
     return device
 
 
+def read_resume(path: Path, model: ChromaGuidedConfig) -> Tuple[dict, ChromaGuided]:
+    """The ``--resume`` checkpoint and its network, checked whole; one-line ``FileNotFoundError`` /
+    ``ValueError`` naming the file otherwise (a garbage file included)."""
+    if not path.is_file():
+        raise FileNotFoundError(f"resume checkpoint {path} not found: pass <output_dir>/latest.pt")
+    saved = load_correction(path)  # a file torch cannot read: one line
+    ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    missing = [k for k in ("optimizer", "scheduler", "epoch", "history", "best_psnr") if k not in ckpt]
+    if missing:
+        raise ValueError(f"{path} lacks {missing}: resume needs a latest.pt written by this trainer")
+    if saved.config != model:
+        raise ValueError(f"{path} holds a {saved.config} network, not the configured {model}")
+    return ckpt, saved
+
+
 def train(config: TrainConfig) -> Dict[str, list]:
     """Run the training; returns the history (per epoch: train loss terms, validation PSNR, seconds)."""
     if config.val_mode not in VAL_MODES:
@@ -420,6 +435,7 @@ def train(config: TrainConfig) -> Dict[str, list]:
     device = training_device(config.device)
     if device.type == "cuda" and config.val_mode not in ("exact", "half"):
         raise ValueError(f"--val-mode {config.val_mode} runs on the CPU only; on CUDA use exact or half")
+    resumed = read_resume(config.resume, config.model) if config.resume is not None else None  # before any work
     if config.threads:
         torch.set_num_threads(config.threads)
     fit_threads()
@@ -458,16 +474,8 @@ def train(config: TrainConfig) -> Dict[str, list]:
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=config.epochs)
     history: Dict[str, list] = {"epoch": [], "val": [], "train": [], "seconds": [], "lr": []}
     start_epoch, best = 1, -math.inf
-    if config.resume is not None:
-        if not config.resume.is_file():
-            raise FileNotFoundError(f"resume checkpoint {config.resume} not found: pass <output_dir>/latest.pt")
-        ckpt = torch.load(config.resume, map_location="cpu", weights_only=True)
-        missing = [k for k in ("optimizer", "scheduler", "epoch", "history") if k not in ckpt]
-        if missing:
-            raise ValueError(f"{config.resume} lacks {missing}: resume needs a latest.pt written by this trainer")
-        saved = load_correction(config.resume)
-        if saved.config != config.model:
-            raise ValueError(f"{config.resume} holds a {saved.config} network, not the configured {config.model}")
+    if resumed is not None:
+        ckpt, saved = resumed
         net.load_state_dict(saved.state_dict())
         opt.load_state_dict(ckpt["optimizer"])
         sched.load_state_dict(ckpt["scheduler"])
