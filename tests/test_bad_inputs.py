@@ -31,7 +31,7 @@ from naka_gs_plugin.points.sources import PointSourceError
 from naka_gs_plugin.scripts import enhance as enhance_cli
 from naka_gs_plugin.scripts import sim as sim_cli
 from naka_gs_plugin.scripts.process_data import ProcessData, ProcessDataError
-from tests.helpers import write_spec
+from tests.helpers import SHARED_DATA, write_spec
 
 NAKA = EnhanceConfig(correction="none")
 Action = Callable[[], object]
@@ -237,6 +237,19 @@ def pd_console_exit(env):
     p = captures(env)
     argv = ["naka-gs-process-data", "--data", str(p / "night1"), "--output-dir", str(p), "--overwrite"]
     return run_console(env, entrypoint, argv), [p]
+
+
+def pd_three_photos_one_point_console(env):
+    """3 dark LOM sofa views: all 3 register, on 1 triangulated point (SfM on 500x375 images, ~3 s)."""
+    from naka_gs_plugin.scripts.process_data import entrypoint
+
+    photos = env.tmp / "photos"
+    photos.mkdir()
+    for n in (1, 2, 3):
+        shutil.copyfile(SHARED_DATA / "lom" / "sofa" / "low" / f"{n}.JPG", photos / f"{n}.JPG")
+    argv = ["naka-gs-process-data", "--data", str(photos), "--output-dir", str(env.tmp / "scene")]
+    argv += ["--enhance.correction", "none"]
+    return run_console(env, entrypoint, argv), [photos, env.tmp]
 
 
 def enh_out_is_the_images_folder(env):
@@ -793,6 +806,7 @@ CASES: List[Tuple[Callable[[Env], Tuple[Action, List[Path]]], object]] = [
     (pd_overwrite_ours_replaces_it, Ok(_replaced)),
     (pd_failed_run_keeps_old_output, Raises(ProcessDataError, "only 0 of 3 images registered")),
     (pd_console_exit, Exits(1, "contains the input")),
+    (pd_three_photos_one_point_console, Exits(1, "photos: only 1 3D point(s) triangulated from 3 registered images")),
     (enh_out_is_the_images_folder, Raises(UnsafeOutputError, "--out")),
     (enh_out_is_the_scene, Raises(UnsafeOutputError, "contains the input")),
     (enh_out_inside_the_images_folder, Raises(UnsafeOutputError, "is inside the input")),

@@ -64,6 +64,11 @@ from naka_gs_plugin.progress import StageProgress
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v")
 MIN_REGISTERED = 3
+MIN_MODEL_POINTS = 50
+"""Fewest 3D points a model may have: below it the poses rest on a handful of matches.
+
+Measured: LOM's COLMAP models hold 800-8700 points (33-48 views); this tool on 4 dark LOM bike views
+gives 181; on 3 dark LOM sofa views (low/1-3) it registers all 3 with 1 point."""
 ENHANCE_CHUNK = 16
 """Images enhanced per call with per-image statistics (bounds memory on large captures)."""
 PNG_FAST = [cv2.IMWRITE_PNG_COMPRESSION, 1]
@@ -259,6 +264,13 @@ class ProcessData:
                 seconds,
             )
 
+        points = model.num_points3D()
+        if points < MIN_MODEL_POINTS:
+            raise ProcessDataError(
+                f"{self.data}: only {points} 3D point(s) triangulated from {registered} registered images (real "
+                f"captures give hundreds), so the poses are unreliable -- add more overlapping photos (ideally 20+), "
+                "or try --matching-method exhaustive or a larger --max-image-size"
+            )
         t0 = time.perf_counter()
         report = self._write_scene(stage, model, sources, names, sfm_names)
         shutil.rmtree(work)
