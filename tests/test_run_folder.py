@@ -1,0 +1,379 @@
+"""A run folder you can trust (issue 36, part A): what loads a run, what may write into one, and signals.
+
+One row per case. Each bad case asserts its one ``naka-gs:`` line and that every file that existed before is
+byte-identical after. Runs are trained in-process through nerfstudio's own ``ns-train`` main (what the
+console script calls after parsing), on the 64x48 toy scene; the commands that load a run are driven
+through their script classes, which all call nerfstudio's ``eval_setup`` as the console scripts do. One
+``ns-eval`` subprocess checks the real command prints no traceback.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import inspect
+import os
+import shutil
+import signal
+import subprocess
+import sys
+from pathlib import Path
+from typing import Dict
+
+import numpy as np
+import pytest
+import yaml
+from nerfstudio.configs.experiment_config import ExperimentConfig
+from nerfstudio.scripts import exporter
+from nerfstudio.scripts import train as ns_train
+from nerfstudio.utils import eval_utils
+
+from naka_gs_plugin.config import naka_gs_method
+from naka_gs_plugin.enhance.stages import NakaStage
+from naka_gs_plugin.trainer import INTERRUPTED_EXIT_CODE, NakaGSTrainer, NakaGSTrainerConfig
+
+BIN = Path(sys.executable).parent
+
+# sha256 of the upstream (nerfstudio 1.1.5) code these hooks rely on: eval_setup asks the config for its
+# checkpoint folder with the file's path in its local ``config_path`` and then loads ``load_step``
+# (eval_setup, eval_load_checkpoint); ns-train calls set_timestamp then save_config (train.main); the
+# run folder's layout (get_base_dir, get_checkpoint_dir, save_config); ns-export makes its folder before
+# eval_setup (ExportGaussianSplat.main).
+UPSTREAM_SHA256 = {
+    "eval_setup": (eval_utils.eval_setup, "57bb85ad21bfef08f5032f01f441701226704a03a07aa2ef8675e76817089a6a"),
+    "eval_load_checkpoint": (
+        eval_utils.eval_load_checkpoint,
+        "673cc38af1137571b1dc5dc747d4e27a75d4b8ac8b76cb1abaa7733f531a6618",
+    ),
+    "train.main": (ns_train.main, "eb5019ff18ee071d48486efc62a8c0e7d48788f9c33a0a32ff5b722a95723437"),
+    "get_base_dir": (ExperimentConfig.get_base_dir, "6da3d785c70b1a1d0e1081d3fea2f56b72fc45b17c9c5c75777b574b76c385f6"),
+    "get_checkpoint_dir": (
+        ExperimentConfig.get_checkpoint_dir,
+        "e05da2c9dae431cd0664dd4bd1926ff3a9b663bdab57027a677388ac549230f5",
+    ),
+    "save_config": (ExperimentConfig.save_config, "b6c800ac503c45676a1b353091d3877ab79205019284b285acf1225344e93fd1"),
+    "ExportGaussianSplat.main": (
+        exporter.ExportGaussianSplat.main,
+        "00511077684e5547b24dfd7565f76552851c18e099afabbb081b46493d83db38",
+    ),
+}
+
+
+# ---------------------------------------------------------------------------------------- helpers
+def _config(scene: Path, out: Path, steps: int = 20, **overrides) -> NakaGSTrainerConfig:
+    """The naka-gs config as ns-train builds it, tiny: 2000 random Gaussians, Naka only, no evaluation."""
+    config = copy.deepcopy(naka_gs_method.config)
+    config.data = scene
+    config.output_dir = out
+    config.timestamp = "run"
+    config.max_num_iterations = steps
+    config.steps_per_save = 10
+    config.save_only_latest_checkpoint = False
+    config.steps_per_eval_image = config.steps_per_eval_all_images = 10**6
+    config.vis = "tensorboard"
+    config.viewer.quit_on_train_completion = True
+    config.pipeline.init.triangulate = False
+    config.pipeline.model.num_random = 2000
+    config.pipeline.datamanager.enhance.correction = "none"
+    for key, value in overrides.items():
+        setattr(config, key, value)
+    return config
+
+
+def _train(config: NakaGSTrainerConfig) -> Path:
+    ns_train.main(config)
+    return config.get_base_dir()
+
+
+def _snapshot(*folders: Path) -> Dict[Path, str]:
+    """sha256 of every file under ``folders``."""
+    return {
+        path: hashlib.sha256(path.read_bytes()).hexdigest()
+        for folder in folders
+        for path in sorted(folder.rglob("*"))
+        if path.is_file()
+    }
+
+
+def _truncate(path: Path) -> None:
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+
+
+def _naka_lines(text: str) -> list:
+    return [line for line in text.splitlines() if line.startswith("naka-gs:")]
+
+
+@pytest.fixture(scope="module")
+def run(toy_scene, tmp_path_factory) -> Path:
+    """A 20-step run (checkpoints of steps 10 and 19); read-only by convention (copy it to change it)."""
+    work = tmp_path_factory.mktemp("run_folder")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("NAKA_GS_CACHE", str(work / "cache"))
+        return _train(_config(toy_scene, work / "outputs"))
+
+
+def _copy_run(run: Path, dst: Path) -> Path:
+    shutil.copytree(run, dst)
+    return dst
+
+
+# ---------------------------------------------------------------------------------------- upstream pinning
+@pytest.mark.parametrize("name", sorted(UPSTREAM_SHA256))
+def test_upstream_code_the_hooks_rely_on_is_the_pinned_one(name):
+    func, expected = UPSTREAM_SHA256[name]
+    digest = hashlib.sha256(inspect.getsource(func).encode()).hexdigest()
+    assert digest == expected, (
+        f"nerfstudio's {name} changed (sha256 {digest}): re-check NakaGSTrainerConfig in naka_gs_plugin/trainer.py "
+        "against it, then update UPSTREAM_SHA256 in tests/test_run_folder.py"
+    )
+
+
+# ---------------------------------------------------------------------------------------- 1. truncated newest
+@pytest.fixture(scope="module")
+def truncated(toy_scene, tmp_path_factory) -> Path:
+    """A run whose newest checkpoint (step 19) was cut in half; step 10 is intact. Read-only by convention."""
+    work = tmp_path_factory.mktemp("truncated")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("NAKA_GS_CACHE", str(work / "cache"))
+        run = _train(_config(toy_scene, work / "outputs"))
+    _truncate(run / "nerfstudio_models" / "step-000000019.ckpt")
+    return run
+
+
+def test_loading_skips_a_truncated_newest_checkpoint(truncated, capsys):
+    before = _snapshot(truncated)
+    _, _, path, step = eval_utils.eval_setup(truncated / "config.yml")
+    models = truncated / "nerfstudio_models"
+    assert (path, step) == (models / "step-000000010.ckpt", 10)
+    assert _naka_lines(capsys.readouterr().out) == [
+        f"naka-gs: skipping corrupt or truncated step-000000019.ckpt in {models}; loading step-000000010.ckpt"
+    ]
+    assert _snapshot(truncated) == before
+
+
+@pytest.mark.slow  # one ns-eval subprocess
+def test_ns_eval_cli_skips_it_without_a_traceback(truncated, tmp_path):
+    before = _snapshot(truncated)
+    out = tmp_path / "eval.json"
+    res = subprocess.run(
+        [str(BIN / "ns-eval"), "--load-config", str(truncated / "config.yml"), "--output-path", str(out)],
+        cwd=tmp_path,
+        env=dict(os.environ, TORCHDYNAMO_DISABLE="1", NAKA_GS_CACHE=str(tmp_path / "cache")),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        timeout=300,
+    )
+    assert res.returncode == 0 and "Traceback" not in res.stdout, res.stdout[-3000:]
+    models = truncated / "nerfstudio_models"
+    assert (
+        f"naka-gs: skipping corrupt or truncated step-000000019.ckpt in {models}; loading step-000000010.ckpt"
+        in _naka_lines(res.stdout)
+    ), res.stdout[-3000:]
+    assert yaml.safe_load(out.read_text())["checkpoint"] == str(models / "step-000000010.ckpt")
+    assert _snapshot(truncated) == before
+
+
+def test_no_valid_checkpoint_is_one_line_and_ns_export_leaves_no_folder(truncated, tmp_path, capsys):
+    run = _copy_run(truncated, tmp_path / "run")
+    _truncate(run / "nerfstudio_models" / "step-000000010.ckpt")
+    before = _snapshot(run)
+    out = tmp_path / "export"
+    with pytest.raises(SystemExit) as exc:
+        exporter.ExportGaussianSplat(load_config=run / "config.yml", output_dir=out).main()
+    models = run / "nerfstudio_models"
+    assert str(exc.value) == (
+        f"naka-gs: {models}: every checkpoint there is corrupt or truncated "
+        "(step-000000019.ckpt, step-000000010.ckpt); nothing to load: train this run again"
+    )
+    assert not out.exists()
+    assert _snapshot(run) == before
+
+    for ckpt in models.iterdir():
+        ckpt.unlink()
+    with pytest.raises(SystemExit) as exc:
+        eval_utils.eval_setup(run / "config.yml")
+    assert str(exc.value) == (
+        f"naka-gs: {models}: no step-*.ckpt checkpoint there; train this run first, "
+        "or load the config.yml of a run that saved one"
+    )
+
+
+# ---------------------------------------------------------------------------------------- 2. copied run
+def test_a_copied_run_loads_its_own_checkpoints(run, tmp_path, capsys):
+    """config.yml records the original's absolute output path; the copy must not load the original's
+    (intact) step 19 but its own, whose step 19 is truncated here: its step 10."""
+    copied = _copy_run(run, tmp_path / "copy")
+    _truncate(copied / "nerfstudio_models" / "step-000000019.ckpt")
+    before = _snapshot(run, copied)
+    config, _, path, step = eval_utils.eval_setup(copied / "config.yml")
+    assert (path, step) == (copied / "nerfstudio_models" / "step-000000010.ckpt", 10)
+    assert config.get_base_dir() == copied  # ns-viewer's log and render tab use the copy too
+    assert _naka_lines(capsys.readouterr().out) == [
+        f"naka-gs: {copied / 'config.yml'} records its run folder as {run}; using the folder it is in, {copied} "
+        "(a copied or moved run loads its own checkpoints)",
+        f"naka-gs: skipping corrupt or truncated step-000000019.ckpt in {copied / 'nerfstudio_models'}; "
+        "loading step-000000010.ckpt",
+    ]
+    assert _snapshot(run, copied) == before
+
+
+# ---------------------------------------------------------------------------------------- 3. same timestamp
+def test_a_second_run_into_the_same_folder_is_refused_and_resuming_it_works(run, toy_scene, tmp_path):
+    outputs = tmp_path / "outputs"
+    folder = _copy_run(run, outputs / toy_scene.name / "naka-gs" / "run")
+    before = _snapshot(folder)
+    with pytest.raises(SystemExit) as exc:
+        _train(_config(toy_scene, outputs))
+    models = folder / "nerfstudio_models"
+    assert str(exc.value) == (
+        f"naka-gs: {folder} already holds a run (its config.yml); pick another --timestamp, "
+        f"or resume that run with --load-dir {models}"
+    )
+    assert _snapshot(folder) == before
+
+    assert _train(_config(toy_scene, outputs, steps=21, load_dir=models)) == folder  # one step: 20
+    after = _snapshot(folder)
+    assert (models / "step-000000020.ckpt").is_file()
+    assert {p: h for p, h in after.items() if p in before and p.name != "config.yml"} == {
+        p: h for p, h in before.items() if p.name != "config.yml"
+    }
+
+
+# ---------------------------------------------------------------------------------------- 6. bad inputs
+def test_ns_eval_without_ground_truth_is_one_line(run, toy_scene, tmp_path):
+    scene = shutil.copytree(toy_scene, tmp_path / "no_test_images")
+    shutil.rmtree(scene / "test")
+    copied = _copy_run(run, tmp_path / "run")
+    config = yaml.load((copied / "config.yml").read_text(), Loader=yaml.Loader)
+    config.data = config.pipeline.datamanager.data = config.pipeline.datamanager.dataparser.data = scene
+    (copied / "config.yml").write_text(yaml.dump(config))
+    before = _snapshot(copied, scene)
+    from nerfstudio.scripts.eval import ComputePSNR
+
+    out = tmp_path / "eval.json"
+    with pytest.raises(SystemExit) as exc:  # a SystemExit: the console script prints its message, no traceback
+        ComputePSNR(load_config=copied / "config.yml", output_path=out).main()
+    assert str(exc.value) == (
+        f"naka-gs: {scene}: the 'test' split has no ground-truth images (its transforms json points at missing "
+        "files), so there is nothing to evaluate against -- use a scene with test images (e.g. LOM, or a "
+        "naka-gs-sim scene) for metrics"
+    )
+    assert not out.exists()
+    assert _snapshot(copied, scene) == before
+
+
+def test_missing_data_is_one_line_and_leaves_no_run_folder(tmp_path):
+    with pytest.raises(SystemExit) as exc:
+        _train(_config(tmp_path / "nowhere", tmp_path / "outputs"))
+    assert str(exc.value) == (
+        f"naka-gs: --data {tmp_path / 'nowhere'}: no such scene folder; pass --data <folder with transforms_train.json>"
+    )
+    assert sorted(tmp_path.iterdir()) == []
+
+
+def test_a_failed_setup_removes_only_the_run_folder_it_made(tmp_path):
+    scene = tmp_path / "not_a_scene"
+    scene.mkdir()
+    outputs = tmp_path / "outputs"
+    outputs.mkdir()
+    (outputs / "keep.txt").write_text("the user's")
+    before = _snapshot(tmp_path)
+    with pytest.raises((ValueError, SystemExit), match="transforms_train.json"):
+        _train(_config(scene, outputs))
+    assert sorted(p.name for p in outputs.iterdir()) == ["keep.txt"]
+    assert _snapshot(tmp_path) == before
+
+
+def test_unwritable_output_dir_is_one_line(toy_scene, tmp_path, monkeypatch):
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o555)
+    if os.geteuid() == 0:  # root writes anywhere: refuse it as a read-only folder would
+        real_mkdir = Path.mkdir
+
+        def mkdir(self, *args, **kwargs):
+            if locked in self.parents:
+                raise PermissionError(13, "Permission denied", str(self))
+            return real_mkdir(self, *args, **kwargs)
+
+        monkeypatch.setattr(Path, "mkdir", mkdir)
+    try:
+        with pytest.raises(SystemExit) as exc:
+            _train(_config(toy_scene, locked / "outputs"))
+    finally:
+        locked.chmod(0o755)
+    run = locked / "outputs" / toy_scene.name / "naka-gs" / "run"
+    assert str(exc.value) == (
+        f"naka-gs: cannot write the run folder {run} (Permission denied); pick a writable --output-dir"
+    )
+    assert list(locked.iterdir()) == []
+
+
+# ---------------------------------------------------------------------------------------- 7. signals, temp files
+def test_sigterm_finishes_the_step_saves_and_exits_as_ctrl_c(toy_scene, tmp_path, monkeypatch, capsys):
+    real_step_done = NakaGSTrainer._step_done
+
+    def step_done(self, step):
+        if step == 2:
+            os.kill(os.getpid(), signal.SIGTERM)  # handled at the next bytecode, inside this step's callbacks
+        real_step_done(self, step)
+
+    monkeypatch.setattr(NakaGSTrainer, "_step_done", step_done)
+    handler = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(SystemExit) as exc:
+        _train(_config(toy_scene, tmp_path / "outputs", steps=1000, steps_per_save=1000))
+    assert exc.value.code == INTERRUPTED_EXIT_CODE
+    assert signal.getsignal(signal.SIGTERM) == handler  # restored
+    models = tmp_path / "outputs" / toy_scene.name / "naka-gs" / "run" / "nerfstudio_models"
+    saved = models / "step-000000002.ckpt"
+    assert _naka_lines(capsys.readouterr().out)[-2:] == [
+        "naka-gs: SIGTERM: finishing step 2, then saving a checkpoint (SIGTERM again: quit without saving)",
+        f"naka-gs: interrupted; step 2 saved to {saved} (resume with --load-dir {models})",
+    ]
+    assert sorted(p.name for p in models.iterdir()) == [saved.name]
+
+
+def test_ctrl_c_while_enhancing_stops_after_the_image_in_hand(toy_scene, tmp_path, monkeypatch, capsys):
+    calls = []
+    real_apply = NakaStage.apply
+
+    def apply(self, image, low):
+        calls.append(1)
+        if len(calls) == 3:  # Ctrl-C while the third of eight images is enhanced
+            os.kill(os.getpid(), signal.SIGINT)
+        return real_apply(self, image, low)
+
+    monkeypatch.setattr(NakaStage, "apply", apply)
+    with pytest.raises(SystemExit) as exc:
+        _train(_config(toy_scene, tmp_path / "outputs", steps=1000))
+    assert exc.value.code == INTERRUPTED_EXIT_CODE
+    assert len(calls) == 3  # not the whole stage
+    assert _naka_lines(capsys.readouterr().out)[-1] == (
+        "naka-gs: Ctrl-C before the first training step finished, nothing to save (enhanced images already "
+        "cached are kept); this run saved no checkpoint"
+    )
+    cached = sorted((tmp_path / "naka-cache" / "enhanced").iterdir())
+    assert len(cached) == 2 and all(p.suffix == ".npy" for p in cached), cached  # no partial file
+    assert all(np.load(p).shape == (48, 64, 3) for p in cached)
+
+
+@pytest.mark.slow  # a Python subprocess: the removal happens at its exit
+def test_a_fallback_cache_in_the_temp_folder_is_removed_at_exit(tmp_path):
+    not_a_folder = tmp_path / "cache-is-a-file"
+    not_a_folder.write_text("")
+    temp = tmp_path / "temp"
+    temp.mkdir()
+    code = "from naka_gs_plugin.data.cache import default_cache_dir; d = default_cache_dir(); print(d, d.is_dir())"
+    res = subprocess.run(
+        [sys.executable, "-c", code],
+        env=dict(os.environ, NAKA_GS_CACHE=str(not_a_folder), TMPDIR=str(temp)),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        timeout=120,
+    )
+    assert res.returncode == 0, res.stdout
+    fallback = Path(res.stdout.split()[-2])
+    assert res.stdout.split()[-1] == "True" and fallback.parent == temp, res.stdout
+    assert list(temp.iterdir()) == []
