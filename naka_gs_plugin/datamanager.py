@@ -10,6 +10,7 @@ gets a one-line :class:`MissingGroundTruthError` (an exit, not a traceback).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Dict, List, Literal, Tuple, Type, Union
 
 import cv2
@@ -24,8 +25,15 @@ from torch import Tensor
 
 from naka_gs_plugin.cpu import keep_freed_memory
 from naka_gs_plugin.data.images import read_raw, read_rgb
-from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig
+from naka_gs_plugin.data.lowlight_dataparser import LowLightDataError, LowLightDataParserConfig
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
+
+FLAT_RANGE = 0.25 / 255.0
+"""Least contrast of a training image (its 0.1-99.9 % pixel range, sRGB [0, 1]): a quarter of an 8-bit level.
+
+Measured: the flattest real captures in ../shared/data (LOL low) still have a pixel std of 2.3 8-bit
+levels; the darkest simulator preset (configs/scenes/dark.yaml, linear 16-bit) spans 2.6 levels. An
+all-black or all-white capture spans 0: lens cap, wrong folder or a blown-out exposure."""
 
 
 class MissingGroundTruthError(SystemExit):
@@ -121,7 +129,41 @@ class LowLightDatamanager(FullImageDatamanager[LowLightDataset]):
         """The training images as training loads them, before enhancement: full bit depth, downscaled,
         undistorted (``naka-gs-enhance`` enhances these, so training then finds them in the cache).
         Once per datamanager: undistortion updates the cameras' intrinsics in place."""
-        return super()._load_images("train", self.config.cache_images)
+        return self._check_contrast(super()._load_images("train", self.config.cache_images))
+
+    def _check_contrast(self, cached: List[Dict[str, torch.Tensor]]) -> List[Dict[str, torch.Tensor]]:
+        """Refuse training images that are all flat (all black, all white: nothing to reconstruct) in one
+        line; warn once when only some are (see :data:`FLAT_RANGE`)."""
+        outputs = self.train_dataparser_outputs
+        names = outputs.metadata.get("source_images", outputs.image_filenames)
+        flat = []
+        for i, data in enumerate(cached):
+            image = data["image"]
+            sample = image[:: max(1, image.shape[0] // 256), :: max(1, image.shape[1] // 256)].float().flatten()
+            lo, hi = torch.quantile(sample.cpu(), torch.tensor([0.001, 0.999])).tolist()
+            if image.dtype == torch.uint8:
+                lo, hi = lo / 255.0, hi / 255.0
+            if hi - lo < FLAT_RANGE:
+                flat.append((names[i], lo, hi))
+        if not flat:
+            return cached
+        kind = (
+            "black" if all(hi < 0.5 for _, _, hi in flat) else "white" if all(lo > 0.5 for _, lo, _ in flat) else "flat"
+        )
+        first, lo, hi = flat[0]
+        what = f"{kind} (no contrast: {Path(first).name} spans {lo:.4f}-{hi:.4f})"
+        if len(flat) == len(cached):
+            raise LowLightDataError(
+                f"{self.config.dataparser.data}: all {len(cached)} training images are {what} -- nothing to "
+                "reconstruct: check the captures (lens cap? wrong folder? overexposed?)"
+            )
+        CONSOLE.log(
+            f"[naka-gs] warning: {len(flat)} of {len(cached)} training images are {what}"
+            f"{', and ' + ', '.join(Path(n).name for n, _, _ in flat[1:3]) if len(flat) > 1 else ''}"
+            f"{' ...' if len(flat) > 3 else ''}: each teaches a blank view -- remove them from transforms_train.json",
+            markup=False,
+        )
+        return cached
 
     def _load_images(
         self, split: Literal["train", "eval"], cache_images_device: Literal["cpu", "gpu"]
@@ -130,6 +172,7 @@ class LowLightDatamanager(FullImageDatamanager[LowLightDataset]):
             raise MissingGroundTruthError(self._no_gt_message())
         cached = super()._load_images(split, cache_images_device)
         if split == "train":
+            self._check_contrast(cached)
             # The enhancer takes CPU images (only its correction network may run on the GPU), also where
             # nerfstudio caches the images on the GPU; each result goes back to its image's device.
             enhanced = self.enhancer.enhance_images(

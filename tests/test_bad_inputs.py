@@ -340,6 +340,35 @@ def dp_downscale_truncated_jpeg(env):
     return parse(s, factor=2), [s]
 
 
+def flat_scene(env, value: int, count: Optional[int] = None) -> Path:
+    """The toy scene with its first ``count`` (default all) training captures one flat 16-bit ``value``."""
+    s = env.scene()
+    for frame in json.loads((s / "transforms_train.json").read_text())["frames"][:count]:
+        path = s / frame["file_path"]
+        cv2.imwrite(str(path), np.full_like(cv2.imread(str(path), cv2.IMREAD_UNCHANGED), value))
+    return s
+
+
+def dm_all_black_images(env):
+    s = flat_scene(env, 0)
+    return datamanager(s), [s]
+
+
+def dm_all_white_images_uint8(env):
+    s = flat_scene(env, 65535)
+    return datamanager(s, "uint8"), [s]
+
+
+def dm_one_black_image(env):
+    s = flat_scene(env, 0, count=1)
+    return datamanager(s), [s]
+
+
+def _warned_blank_view(env, cached):
+    log = env.log()
+    assert len(cached) == 8 and log.count("warning: 1 of 8 training images are black (no contrast: 0000.png") == 1
+
+
 def cam_focal_1e10(env):
     s = env.scene()
     edit_frame0(s, fl_x=1e10, fl_y=1e10)
@@ -820,6 +849,9 @@ CASES: List[Tuple[Callable[[Env], Tuple[Action, List[Path]]], object]] = [
     (dm_truncated_jpeg_float32, Raises(ImageReadError, "truncated or corrupt JPEG")),
     (dm_truncated_jpeg_uint8, Raises(ImageReadError, "truncated or corrupt JPEG")),
     (dp_downscale_truncated_jpeg, Raises(ImageReadError, "truncated or corrupt JPEG")),
+    (dm_all_black_images, Raises(LowLightDataError, "all 8 training images are black (no contrast: 0000.png spans")),
+    (dm_all_white_images_uint8, Raises(LowLightDataError, "all 8 training images are white")),
+    (dm_one_black_image, Ok(_warned_blank_view)),
     (cam_focal_1e10, Raises(LowLightDataError, "px is over 100.0x the image size -- give focal lengths in pixels")),
     (cam_focal_zero, Raises(LowLightDataError, "focal length fl_x, fl_y = 0.0")),
     (cam_focal_nan, Raises(LowLightDataError, "are not all finite")),

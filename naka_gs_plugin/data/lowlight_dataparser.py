@@ -418,7 +418,12 @@ class LowLightDataParser(DataParser):
             scene_box=SceneBox(aabb=torch.tensor([[-box, -box, -box], [box, box, box]], dtype=torch.float32)),
             dataparser_transform=transform.float(),
             dataparser_scale=scale,
-            metadata={"has_ground_truth": has_gt, "downscale_factor": factor, "scene": str(scene)},
+            metadata={
+                "has_ground_truth": has_gt,
+                "downscale_factor": factor,
+                "scene": str(scene),
+                "source_images": frames.images,  # the user's files (image_filenames may be downscaled copies)
+            },
         )
 
 
