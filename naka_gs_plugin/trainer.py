@@ -158,10 +158,9 @@ class NakaGSTrainer(Trainer):
                 self._previous_handlers[signum] = signal.signal(signum, self._on_stop_signal)
 
     def _on_stop_signal(self, signum, frame) -> None:
-        if self._stop_step is not None or self._done_step is None:
-            self._stop_name = "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name
-            raise KeyboardInterrupt  # a second one, or nothing trained yet: stop now
         self._stop_name = "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name
+        if self._stop_step is not None or self._done_step is None:
+            raise KeyboardInterrupt  # a second one, or nothing trained yet: stop now
         self._stop_step = self.step
         self.stop_training = True  # also ends upstream's pause loop; _step_done re-sets it if train() resets it
         CONSOLE.print(
