@@ -189,6 +189,18 @@ def test_no_valid_checkpoint_is_one_line_and_ns_export_leaves_no_folder(truncate
     assert not out.exists()
     assert _snapshot(run) == before
 
+    # ns-render and ns-viewer load through the same eval_setup: the same line, nothing written.
+    from nerfstudio.scripts.render import DatasetRender
+    from nerfstudio.scripts.viewer.run_viewer import RunViewer
+
+    renders = tmp_path / "renders"
+    for command in (DatasetRender(load_config=run / "config.yml", output_path=renders), RunViewer(run / "config.yml")):
+        with pytest.raises(SystemExit) as again:
+            command.main()
+        assert str(again.value) == str(exc.value)
+    assert not renders.exists()
+    assert _snapshot(run) == before
+
     for ckpt in models.iterdir():
         ckpt.unlink()
     with pytest.raises(SystemExit) as exc:
@@ -298,6 +310,7 @@ def test_unwritable_output_dir_is_one_line(toy_scene, tmp_path, monkeypatch):
             return real_mkdir(self, *args, **kwargs)
 
         monkeypatch.setattr(Path, "mkdir", mkdir)
+    before = _snapshot(toy_scene)
     try:
         with pytest.raises(SystemExit) as exc:
             _train(_config(toy_scene, locked / "outputs"))
@@ -308,6 +321,7 @@ def test_unwritable_output_dir_is_one_line(toy_scene, tmp_path, monkeypatch):
         f"naka-gs: cannot write the run folder {run} (Permission denied); pick a writable --output-dir"
     )
     assert list(locked.iterdir()) == []
+    assert _snapshot(toy_scene) == before
 
 
 # ---------------------------------------------------------------------------------------- 7. signals, temp files
@@ -321,6 +335,7 @@ def test_sigterm_finishes_the_step_saves_and_exits_as_ctrl_c(toy_scene, tmp_path
 
     monkeypatch.setattr(NakaGSTrainer, "_step_done", step_done)
     handler = signal.getsignal(signal.SIGTERM)
+    before = _snapshot(toy_scene)
     with pytest.raises(SystemExit) as exc:
         _train(_config(toy_scene, tmp_path / "outputs", steps=1000, steps_per_save=1000))
     assert exc.value.code == INTERRUPTED_EXIT_CODE
@@ -332,6 +347,7 @@ def test_sigterm_finishes_the_step_saves_and_exits_as_ctrl_c(toy_scene, tmp_path
         f"naka-gs: interrupted; step 2 saved to {saved} (resume with --load-dir {models})",
     ]
     assert sorted(p.name for p in models.iterdir()) == [saved.name]
+    assert _snapshot(toy_scene) == before
 
 
 def test_ctrl_c_while_enhancing_stops_after_the_image_in_hand(toy_scene, tmp_path, monkeypatch, capsys):
@@ -345,6 +361,7 @@ def test_ctrl_c_while_enhancing_stops_after_the_image_in_hand(toy_scene, tmp_pat
         return real_apply(self, image, low)
 
     monkeypatch.setattr(NakaStage, "apply", apply)
+    before = _snapshot(toy_scene)
     with pytest.raises(SystemExit) as exc:
         _train(_config(toy_scene, tmp_path / "outputs", steps=1000))
     assert exc.value.code == INTERRUPTED_EXIT_CODE
@@ -356,6 +373,7 @@ def test_ctrl_c_while_enhancing_stops_after_the_image_in_hand(toy_scene, tmp_pat
     cached = sorted((tmp_path / "naka-cache" / "enhanced").iterdir())
     assert len(cached) == 2 and all(p.suffix == ".npy" for p in cached), cached  # no partial file
     assert all(np.load(p).shape == (48, 64, 3) for p in cached)
+    assert _snapshot(toy_scene) == before
 
 
 @pytest.mark.slow  # a Python subprocess: the removal happens at its exit
