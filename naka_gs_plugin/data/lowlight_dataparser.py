@@ -257,7 +257,8 @@ def _check_camera_spread(train: "SplitFrames") -> None:
     if float(dist[far]) <= 1e-9 * max(1.0, float(mid.norm())):
         raise _fail(
             train.json_path,
-            f"all {len(dist)} training cameras are at one position {[round(v, 6) for v in mid.tolist()]}",
+            (f"all {len(dist)} training cameras are" if len(dist) > 1 else "the only training camera is")
+            + f" at one position {[round(v, 6) for v in mid.tolist()]}",
             "3D reconstruction needs views from different positions: check the poses (a copied matrix?)",
         )
     median = float(dist.median())
