@@ -62,8 +62,13 @@ class LowLightDataset(InputDataset):
     def get_numpy_image(self, image_idx: int) -> np.ndarray:
         """nerfstudio's 8-bit PIL read (``cache_images_type uint8``), after a full check of the file
         (PIL may be set to pad truncated images; a broken file gets one line naming it)."""
-        read_raw(self._dataparser_outputs.image_filenames[image_idx])
-        return super().get_numpy_image(image_idx)
+        path = self._dataparser_outputs.image_filenames[image_idx]
+        read_raw(path)
+        try:
+            return super().get_numpy_image(image_idx)
+        except OSError:  # a file PIL cannot open but the reader can (float32 RGB TIFF): rounded to 8 bit
+            image = self.get_image_float32(image_idx).numpy()
+            return np.round(image * 255.0).astype(np.uint8)
 
     def get_image_float32(self, image_idx: int) -> Float[Tensor, "H W 3"]:
         """The image at full bit depth (16-bit captures keep their dark detail), float32 sRGB [0, 1]."""

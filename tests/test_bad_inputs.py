@@ -512,6 +512,11 @@ def _all_loaded(env, cached):
     assert len(cached) == 8 and all(torch.isfinite(d["image"]).all() for d in cached)
 
 
+def img_float32_tiff_trains_uint8(env):
+    s = float_tiff_scene(env)
+    return datamanager(s, "uint8"), [s]
+
+
 def img_float32_tiff_with_nan(env):
     s = float_tiff_scene(env, nan=True)
     return datamanager(s), [s]
@@ -868,6 +873,7 @@ CASES: List[Tuple[Callable[[Env], Tuple[Action, List[Path]]], object]] = [
     (cam_all_at_one_position, Raises(LowLightDataError, "all 8 training cameras are at one position")),
     (cam_distortion_absurd, Raises(LowLightDataError, "distortion k1=50, k2=-80 scales the image corner by 3.07")),
     (img_float32_tiff_trains, Ok(_all_loaded)),
+    (img_float32_tiff_trains_uint8, Ok(_all_loaded)),
     (img_float32_tiff_with_nan, Raises(ImageReadError, "0000.tif: 1 pixels are NaN/Inf")),
     (
         seed_truncated_colmap_points,
