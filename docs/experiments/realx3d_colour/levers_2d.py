@@ -1,0 +1,99 @@
+"""2D colour levers on RealX3D BlueHawaii, scored against its 30 normal-light references.
+
+Each lever re-takes the colour of the default enhancement's cached per-view output (Naka + shipped network +
+capture chroma, before the exposure step), keeps each pixel's linear brightness (mean of the channels), then
+applies the default exposure step and scores like ``naka-gs-enhance --reference``. Levers:
+
+- ``decode G``: the capture decoded by a pure power law ``code ** G`` (a camera curve without sRGB's linear
+  toe below code 10) instead of the sRGB curve before its chromaticity is taken;
+- ``cbcr A``: the capture's JPEG chroma (Cb, Cr of its sRGB codes) scaled by ``A`` first (undoing a
+  desaturation of the dark frame);
+- ``network``: the network's own colour (no capture chroma);
+- ``oracle``: the default output with one per-scene white balance fitted to the references (diagnosis only: a
+  ceiling for any scene-wide colour correction, never a method).
+
+    .venv/bin/naka-gs-enhance ../shared/data/realx3d/BlueHawaii --out outputs/bluehawaii-2d-default  # fills the cache
+    .venv/bin/python docs/experiments/realx3d_colour/levers_2d.py decode:2.2 cbcr:1.5 network oracle
+"""
+
+import sys
+from pathlib import Path
+
+import cv2
+import kornia
+import torch
+
+from naka_gs_plugin.data.images import read_rgb
+from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig, read_split
+from naka_gs_plugin.datamanager import LowLightDatamanagerConfig
+from naka_gs_plugin.enhance.pipeline import EnhanceConfig
+from naka_gs_plugin.enhance.stages import ExposureStage, to_float01
+from naka_gs_plugin.scripts.enhance import score_against
+
+torch.set_grad_enabled(False)
+SCENE = Path("../shared/data/realx3d/BlueHawaii")
+
+
+def linear(x):
+    return kornia.color.rgb_to_linear_rgb(x.clamp(0, 1))
+
+
+def with_chroma(image, chroma):
+    """``image``'s linear brightness per pixel with the given linear chromaticity ``[3, H, W]``."""
+    lum = linear(image.permute(2, 0, 1)).mean(0, keepdim=True)
+    return kornia.color.linear_rgb_to_rgb((lum * chroma).clamp(0, 1)).permute(1, 2, 0)
+
+
+def capture_chroma(low, decode="srgb", cbcr=1.0, blur=3.0):
+    """The blurred capture's linear chromaticity, as :func:`naka_gs_plugin.enhance.chroma.capture_chroma`
+    takes it, with the lever's decode or chroma scale."""
+    k = max(3, int(3 * blur) | 1)
+    cap = kornia.filters.gaussian_blur2d(low.permute(2, 0, 1)[None], (k, k), (blur, blur), border_type="replicate")
+    if cbcr != 1.0:
+        ycc = kornia.color.rgb_to_ycbcr(cap)
+        cap = kornia.color.ycbcr_to_rgb(torch.cat([ycc[:, :1], 0.5 + cbcr * (ycc[:, 1:] - 0.5)], 1))
+    cap = cap[0].clamp(0, 1)
+    lin, eps = (linear(cap), 1e-4) if decode == "srgb" else (cap**decode, 1e-4 ** (decode / 2.4))
+    return (lin + eps) / (lin.mean(0, keepdim=True) + eps)
+
+
+def main(levers):
+    dm = LowLightDatamanagerConfig(
+        dataparser=LowLightDataParserConfig(data=SCENE), enhance=EnhanceConfig(exposure="none")
+    ).setup(device="cpu")
+    lows = [to_float01(d["image"]) for d in dm.load_unenhanced_train()]
+    cached = dm.enhancer.enhance_images(lows)
+    names = [p.name for p in read_split(SCENE, "transforms_train.json").images]
+    by_stem = {p.stem: p for p in read_split(SCENE, "transforms_reference.json").images}
+    refs = [by_stem[Path(n).stem] for n in names]
+    for lever in levers:
+        kind, _, value = lever.partition(":")
+        if kind == "decode":
+            out = [with_chroma(i, capture_chroma(lo, decode=float(value))) for i, lo in zip(cached, lows)]
+        elif kind == "cbcr":
+            out = [with_chroma(i, capture_chroma(lo, cbcr=float(value))) for i, lo in zip(cached, lows)]
+        elif kind == "network":
+            naka, correction = dm.enhancer.view_stages[:2]
+            naka.prepare(lows)
+            out = [correction.apply(naka.apply(lo, lo), lo) for lo in lows]
+        elif kind == "oracle":
+            h, w = cached[0].shape[:2]
+            truth = [torch.from_numpy(cv2.resize(read_rgb(p), (w, h), interpolation=cv2.INTER_AREA)) for p in refs]
+
+            def mean_linear(images):
+                return torch.stack([linear(i.permute(2, 0, 1)).mean((1, 2)) for i in images]).mean(0)
+
+            gains = mean_linear(truth) / mean_linear(cached)
+            print(f"oracle white balance (r, g, b gains, mean 1): {(gains / gains.mean()).tolist()}")
+            out = []
+            for image in cached:
+                lin = linear(image.permute(2, 0, 1)) * gains[:, None, None]
+                out.append(with_chroma(image, lin / lin.mean(0, keepdim=True).clamp(min=1e-8)))
+        else:
+            raise SystemExit(f"unknown lever {lever!r}: decode:G, cbcr:A, network or oracle")
+        print(f"BlueHawaii, {lever}:", flush=True)
+        score_against(ExposureStage().apply_all(out), refs, names)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:] or ["decode:2.2", "cbcr:1.5", "network", "oracle"])
