@@ -15,6 +15,7 @@ load).
 
 from __future__ import annotations
 
+import sys
 import tempfile
 from dataclasses import dataclass, field
 from functools import partial
@@ -37,6 +38,7 @@ from naka_gs_plugin.points.seeding import (
     log_points,
     resolve_seed_points,
 )
+from naka_gs_plugin.trainer import loading_error_exit
 
 
 @dataclass
@@ -48,6 +50,19 @@ class NakaGSPipelineConfig(VanillaPipelineConfig):
     model: NakaGSModelConfig = field(default_factory=NakaGSModelConfig)
     init: PointInitConfig = field(default_factory=PointInitConfig)
     """Seed points of the Gaussians (source, alignment, PPM)."""
+
+    def setup(self, **kwargs: Any) -> Any:
+        """The pipeline, as upstream builds it. When ``eval_setup`` builds it for ``ns-eval``, ``ns-render``,
+        ``ns-export`` or ``ns-viewer``, a user error (a scene moved away since training, a bad scene file) is
+        one line naming the scene config.yml records (``trainer.loading_error_exit``)."""
+        try:
+            return super().setup(**kwargs)
+        except Exception as err:
+            data = self.datamanager.data or self.datamanager.dataparser.data
+            exit_ = loading_error_exit(sys._getframe(1), data, err)
+            if exit_ is None:
+                raise
+            raise exit_ from None
 
     def __setstate__(self, state: Dict[str, Any]) -> None:
         """Load ``config.yml`` files of runs trained before ``init`` moved here from the model config

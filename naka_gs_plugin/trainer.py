@@ -7,11 +7,15 @@
   older one, and fail with one line naming the folder when none is valid.
 - SIGTERM is handled as Ctrl-C; either one before the first training step has finished (while the
   training images load and are enhanced, which can take minutes) stops at once, nothing to save.
+- One of the plugin's own errors for a problem the user can fix (:data:`USER_ERRORS`: a bad scene file,
+  image, point source) ends ``ns-train`` with the one line ``naka-gs: <message>`` (exit status 1)
+  instead of nerfstudio's traceback; any other exception is a bug and keeps its traceback.
 
 ``NakaGSTrainerConfig`` makes the run folder trustworthy: ``ns-train`` refuses a run folder that already
 holds another run, a missing ``--data`` or an unwritable ``--output-dir`` is one line and leaves no
 folder, and ``ns-eval`` / ``ns-render`` / ``ns-export`` / ``ns-viewer`` load the newest valid checkpoint
-of the folder their config.yml is in (a copied or moved run loads its own checkpoints).
+of the folder their config.yml is in (a copied or moved run loads its own checkpoints); a scene that is
+no longer where config.yml says is one line there too (:func:`loading_error_exit`).
 
 Only the hooks are overridden; loading the chosen file is still upstream's code. The upstream methods
 whose behaviour this relies on are pinned by source hash in ``tests/test_trainer_safety.py`` and
@@ -46,6 +50,34 @@ CHECKPOINT_NAME = re.compile(r"step-(\d+)\.ckpt")
 # first "."]) and take the largest (eval_utils.eval_load_checkpoint). A temporary file left by a kill
 # therefore has to parse, and to step 0, so that it never outranks a real checkpoint.
 PARTIAL_PREFIX = "tmp-0."
+
+
+USER_ERRORS = frozenset(
+    {
+        "naka_gs_plugin.data.images.ImageReadError",
+        "naka_gs_plugin.data.lowlight_dataparser.LowLightDataError",
+        "naka_gs_plugin.data.safe_io.UnsafeOutputError",
+        "naka_gs_plugin.model.naka_gs_model.NonFiniteTrainingError",
+        "naka_gs_plugin.points.align.AlignmentError",
+        "naka_gs_plugin.points.sfm.SfMError",
+        "naka_gs_plugin.points.sources.PointSourceError",
+        "naka_gs_plugin.scripts.ppm.PpmOutputError",
+        "naka_gs_plugin.scripts.process_data.ProcessDataError",
+        "naka_gs_plugin.sim.spec.SimSpecError",
+    }
+)
+"""The plugin's exceptions for a problem the user can fix, by qualified name: each message is one line naming
+the file or option and the fix. Named, not imported (points.sfm imports pycolmap): a class whose module is not
+loaded cannot have been raised. tests/test_run_folder.py checks that every ``*Error`` class of the package is
+here or is a ``SystemExit`` already."""
+
+
+def user_error_exit(err: BaseException) -> Optional[SystemExit]:
+    """``SystemExit("naka-gs: <message>")`` (exit status 1, no traceback) for one of :data:`USER_ERRORS`, else
+    None: any other exception is a bug and keeps its traceback."""
+    if any(f"{cls.__module__}.{cls.__qualname__}" in USER_ERRORS for cls in type(err).__mro__):
+        return SystemExit(f"naka-gs: {err}")
+    return None
 
 
 def checkpoint_step(path: Path) -> Optional[int]:
@@ -110,7 +142,8 @@ class NakaGSTrainer(Trainer):
 
     def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
         """Upstream's setup, plus a callback that records the last fully completed step. A setup that fails
-        removes the run folder ``save_config`` has just made (nothing was trained into it)."""
+        removes the run folder ``save_config`` has just made (nothing was trained into it); a user error
+        (:data:`USER_ERRORS`: an empty ``--data`` folder, a truncated COLMAP model...) is then one line."""
         self._stop_step: Optional[int] = None  # the step running when the first Ctrl-C / SIGTERM came
         self._stop_name = "interrupted"  # "Ctrl-C" or "SIGTERM" once one came
         self._done_step: Optional[int] = None  # the last step whose iteration and callbacks finished
@@ -121,8 +154,11 @@ class NakaGSTrainer(Trainer):
         except KeyboardInterrupt:
             self._discard_new_run_folder()
             self._exit_interrupted(f"{self._stop_name} during setup, before any training step; {self._newest_note()}")
-        except BaseException:
+        except BaseException as err:
             self._discard_new_run_folder()
+            exit_ = user_error_exit(err)
+            if exit_ is not None:
+                raise exit_ from None
             raise
         finally:
             self._release_stop_signals()
@@ -133,7 +169,8 @@ class NakaGSTrainer(Trainer):
 
         Stopping between steps matters: an interrupt inside densification or an optimizer step would
         save parameters and optimizer state that no longer match. Before the first step has finished
-        (the training images load and are enhanced inside it) there is nothing to save: it stops at once."""
+        (the training images load and are enhanced inside it) there is nothing to save: it stops at once.
+        A user error (:data:`USER_ERRORS`: an unreadable training image, a diverged loss) is one line."""
         self._catch_stop_signals()
         try:
             super().train()
@@ -146,6 +183,11 @@ class NakaGSTrainer(Trainer):
                     f"images already cached are kept); {self._newest_note()}"
                 )
             self._exit_interrupted(f"interrupted again during step {self.step}, not saved; {self._newest_note()}")
+        except Exception as err:
+            exit_ = user_error_exit(err)
+            if exit_ is None:
+                raise
+            raise exit_ from None
         finally:
             self._release_stop_signals()
 
@@ -342,6 +384,27 @@ def _remove_new_empty_output_dir(eval_setup_frame: FrameType) -> None:
         pass
 
 
+def loading_error_exit(frame: Optional[FrameType], data: Optional[Path], err: BaseException) -> Optional[SystemExit]:
+    """The one line to exit with when ``err``, a user error (:data:`USER_ERRORS`), was raised while nerfstudio's
+    ``eval_setup`` (``frame``) set up the pipeline of the run it loads, whose scene is ``data``; else None.
+
+    A scene folder no longer where config.yml records it (moved or deleted after training) is named with the
+    fix: config.yml is the only place ``ns-eval`` / ``ns-render`` / ``ns-export`` / ``ns-viewer`` learn the
+    scene from. The output folder ``ns-export`` has just made is removed again."""
+    config_path = _eval_setup_config_path(frame)
+    exit_ = user_error_exit(err)
+    if frame is None or config_path is None or exit_ is None:
+        return None
+    _remove_new_empty_output_dir(frame)
+    if data is None or Path(data).is_dir():
+        return exit_
+    where = f"{data}" if Path(data).is_absolute() else f"{data} (relative: looked for in {Path.cwd()})"
+    return SystemExit(
+        f"naka-gs: {config_path} records --data {where}, and no scene folder is there (moved or deleted since "
+        "training): move the scene back there, or edit the data: path at the top of that config.yml"
+    )
+
+
 @dataclass
 class NakaGSTrainerConfig(TrainerConfig):
     """nerfstudio's ``TrainerConfig`` for :class:`NakaGSTrainer`, with a run folder that can be trusted.
@@ -356,7 +419,9 @@ class NakaGSTrainerConfig(TrainerConfig):
     def set_timestamp(self) -> None:
         """Upstream's timestamp, then refuse a run folder that already holds a run, unless this run resumes
         it (``--load-dir`` / ``--load-checkpoint`` inside it). ``ns-train`` calls this just before it writes
-        config.yml; programs that manage their own run folders (benchmarks.grid) call ``save_config`` only."""
+        config.yml; programs that manage their own run folders (benchmarks.grid) call ``save_config`` only.
+        ``ns-train --load-config <a run's config.yml>`` ends here too: its file fixes the run folder, so the
+        refusal also says what to change in the file."""
         super().set_timestamp()
         run = self.get_base_dir()
         if not (run / "config.yml").exists():
@@ -366,9 +431,13 @@ class NakaGSTrainerConfig(TrainerConfig):
         resumed += [Path(self.load_checkpoint).parent] if self.load_checkpoint is not None else []
         if any(folder.resolve() == models for folder in resumed):
             return
+        # With --load-config, ns-train takes every option from that file and ignores the command line's, so
+        # the flags that would help need their counterparts in the file.
+        model_dir = run / self.relative_model_dir
         raise SystemExit(
-            f"naka-gs: {run} already holds a run (its config.yml); pick another --timestamp, "
-            f"or resume that run with --load-dir {run / self.relative_model_dir}"
+            f"naka-gs: {run} already holds a run (its config.yml); resume it with --load-dir {model_dir} or pick "
+            "another --timestamp -- with --load-config these flags are ignored (every option comes from the file): "
+            f"set load_dir: {model_dir} in that file to resume, or change the timestamp: line in a copy for a new run"
         )
 
     def save_config(self) -> None:

@@ -9,9 +9,12 @@ through their script classes, which all call nerfstudio's ``eval_setup`` as the 
 
 from __future__ import annotations
 
+import ast
 import copy
 import hashlib
+import importlib
 import inspect
+import json
 import os
 import shutil
 import signal
@@ -30,7 +33,13 @@ from nerfstudio.utils import eval_utils
 
 from naka_gs_plugin.config import naka_gs_method
 from naka_gs_plugin.enhance.stages import NakaStage
-from naka_gs_plugin.trainer import INTERRUPTED_EXIT_CODE, NakaGSTrainer, NakaGSTrainerConfig
+from naka_gs_plugin.trainer import (
+    INTERRUPTED_EXIT_CODE,
+    USER_ERRORS,
+    NakaGSTrainer,
+    NakaGSTrainerConfig,
+    user_error_exit,
+)
 
 BIN = Path(sys.executable).parent
 
@@ -231,6 +240,15 @@ def test_a_copied_run_loads_its_own_checkpoints(run, tmp_path, capsys):
 
 
 # ---------------------------------------------------------------------------------------- 3. same timestamp
+def _clash(folder: Path) -> str:
+    models = folder / "nerfstudio_models"
+    return (
+        f"naka-gs: {folder} already holds a run (its config.yml); resume it with --load-dir {models} or pick "
+        "another --timestamp -- with --load-config these flags are ignored (every option comes from the file): "
+        f"set load_dir: {models} in that file to resume, or change the timestamp: line in a copy for a new run"
+    )
+
+
 def test_a_second_run_into_the_same_folder_is_refused_and_resuming_it_works(run, toy_scene, tmp_path):
     outputs = tmp_path / "outputs"
     folder = _copy_run(run, outputs / toy_scene.name / "naka-gs" / "run")
@@ -238,10 +256,7 @@ def test_a_second_run_into_the_same_folder_is_refused_and_resuming_it_works(run,
     with pytest.raises(SystemExit) as exc:
         _train(_config(toy_scene, outputs))
     models = folder / "nerfstudio_models"
-    assert str(exc.value) == (
-        f"naka-gs: {folder} already holds a run (its config.yml); pick another --timestamp, "
-        f"or resume that run with --load-dir {models}"
-    )
+    assert str(exc.value) == _clash(folder)
     assert _snapshot(folder) == before
 
     assert _train(_config(toy_scene, outputs, steps=21, load_dir=models)) == folder  # one step: 20
@@ -250,6 +265,40 @@ def test_a_second_run_into_the_same_folder_is_refused_and_resuming_it_works(run,
     assert {p: h for p, h in after.items() if p in before and p.name != "config.yml"} == {
         p: h for p, h in before.items() if p.name != "config.yml"
     }
+
+
+def test_load_config_of_an_existing_run_is_refused_with_advice_that_works(run, toy_scene, tmp_path, capsys):
+    """``ns-train naka-gs --load-config <run>/config.yml``: ns-train takes every option from the file (the run
+    folder included) and ignores the command line's, so "another --timestamp" cannot help; the file edits the
+    refusal names do."""
+    outputs = tmp_path / "outputs"
+    folder = _copy_run(run, outputs / toy_scene.name / "naka-gs" / "run")
+    config = yaml.load((folder / "config.yml").read_text(), Loader=yaml.Loader)
+    config.output_dir = outputs  # the copy's config.yml records the copy's folder, as a run trained there does
+    (folder / "config.yml").write_text(yaml.dump(config))
+    before = _snapshot(folder)
+    elsewhere = tmp_path / "elsewhere"
+    with pytest.raises(SystemExit) as exc:  # the flags next to --load-config are ignored by ns-train
+        _train(_config(toy_scene, elsewhere, timestamp="other", load_config=folder / "config.yml"))
+    assert exc.value.code == _clash(folder)
+    captured = capsys.readouterr()
+    assert "Traceback" not in captured.out + captured.err
+    assert _snapshot(folder) == before and not elsewhere.exists()
+
+    # The advice works: load_dir: in the file resumes that run; another timestamp: in a copy starts a new one.
+    models = folder / "nerfstudio_models"
+    text = (folder / "config.yml").read_text().replace("max_num_iterations: 20", "max_num_iterations: 1")  # fast
+    resume, other = tmp_path / "resume.yml", tmp_path / "other.yml"
+    resume.write_text(text.replace("load_dir: null", f"load_dir: {models}"))
+    other.write_text(text.replace("timestamp: run", "timestamp: run2"))
+    ns_train.main(_config(toy_scene, elsewhere, load_config=resume))
+    assert (models / "step-000000020.ckpt").is_file()  # resumed after step 19, in that run's folder
+    assert {p: h for p, h in _snapshot(folder).items() if p in before and p.name != "config.yml"} == {
+        p: h for p, h in before.items() if p.name != "config.yml"
+    }
+    ns_train.main(_config(toy_scene, elsewhere, load_config=other))
+    assert not elsewhere.exists()
+    assert sorted(p.name for p in (folder.parent / "run2" / "nerfstudio_models").iterdir()) == ["step-000000000.ckpt"]
 
 
 # ---------------------------------------------------------------------------------------- 6. bad inputs
@@ -291,10 +340,95 @@ def test_a_failed_setup_removes_only_the_run_folder_it_made(tmp_path):
     outputs.mkdir()
     (outputs / "keep.txt").write_text("the user's")
     before = _snapshot(tmp_path)
-    with pytest.raises((ValueError, SystemExit), match="transforms_train.json"):
+    with pytest.raises(SystemExit) as exc:  # the plugin's LowLightDataError, as one line
         _train(_config(scene, outputs))
+    assert exc.value.code == (
+        f"naka-gs: {scene / 'transforms_train.json'}: file not found -- every lowlight-data scene needs "
+        "transforms_train.json and transforms_test.json"
+    )
     assert sorted(p.name for p in outputs.iterdir()) == ["keep.txt"]
     assert _snapshot(tmp_path) == before
+
+
+def test_user_errors_are_every_error_class_of_the_package():
+    """Each ``*Error`` class in naka_gs_plugin is a user error (one line at the ns-* boundary) or a SystemExit."""
+    package = Path(inspect.getfile(NakaGSTrainer)).parent
+    found = set()
+    for path in package.rglob("*.py"):
+        module = ".".join(("naka_gs_plugin", *path.relative_to(package).with_suffix("").parts))
+        found |= {
+            f"{module}.{node.name}"
+            for node in ast.walk(ast.parse(path.read_text()))
+            if isinstance(node, ast.ClassDef) and node.name.endswith("Error")
+        }
+    assert USER_ERRORS <= found
+    for name in sorted(found):
+        module, _, cls = name.rpartition(".")
+        error = getattr(importlib.import_module(module), cls)
+        assert issubclass(error, SystemExit) or user_error_exit(error.__new__(error)) is not None, (
+            f"{name}: not in USER_ERRORS"
+        )
+
+
+def test_a_plugin_error_is_one_line_in_ns_train_and_when_loading_a_run(run, toy_scene, tmp_path, monkeypatch, capsys):
+    """The plugin's own errors (a bad scene, an unreadable image...) reach the user as one ``naka-gs:`` line
+    (SystemExit: exit status 1, no traceback), from ns-train's first step and from eval_setup (ns-eval,
+    ns-render, ns-export, ns-viewer); any other exception is a bug and keeps its traceback."""
+    # ns-train: an unreadable training image, found when the first step loads the images.
+    scene = Path(shutil.copytree(toy_scene, tmp_path / "scene"))
+    image = scene / json.loads((scene / "transforms_train.json").read_text())["frames"][0]["file_path"]
+    image.write_bytes(image.read_bytes()[:50])
+    before = _snapshot(scene)
+    with pytest.raises(SystemExit) as exc:
+        _train(_config(scene, tmp_path / "outputs"))
+    assert exc.value.code == (
+        f"naka-gs: {image}: unreadable image (truncated, corrupt or not a PNG/JPEG/TIFF) -- restore the complete "
+        "file (copy it again from the camera or backup) or remove it from the scene"
+    )
+    assert _snapshot(scene) == before
+
+    # Loading a run whose scene was moved away after training: config.yml is where ns-eval & co. find it.
+    trained_on = Path(shutil.copytree(toy_scene, tmp_path / "trained_on"))
+    copied = _copy_run(run, tmp_path / "run")
+    config = yaml.load((copied / "config.yml").read_text(), Loader=yaml.Loader)
+    config.data = config.pipeline.datamanager.data = config.pipeline.datamanager.dataparser.data = trained_on
+    (copied / "config.yml").write_text(yaml.dump(config))
+    shutil.move(trained_on, tmp_path / "moved_away")
+    before = _snapshot(copied)
+    expected = (
+        f"naka-gs: {copied / 'config.yml'} records --data {trained_on}, and no scene folder is there (moved or deleted "
+        "since training): move the scene back there, or edit the data: path at the top of that config.yml"
+    )
+    from nerfstudio.scripts.eval import ComputePSNR
+    from nerfstudio.scripts.render import DatasetRender
+    from nerfstudio.scripts.viewer.run_viewer import RunViewer
+
+    out = tmp_path / "loaded"
+    for command in (
+        ComputePSNR(load_config=copied / "config.yml", output_path=out / "eval.json"),
+        exporter.ExportGaussianSplat(load_config=copied / "config.yml", output_dir=out),
+        DatasetRender(load_config=copied / "config.yml", output_path=out),
+        RunViewer(copied / "config.yml"),
+    ):
+        with pytest.raises(SystemExit) as exc:
+            command.main()
+        assert exc.value.code == expected, type(command).__name__
+    assert not out.exists()  # ns-export removed the folder it had made
+    captured = capsys.readouterr()
+    assert "Traceback" not in captured.out + captured.err
+    assert _snapshot(copied) == before
+
+    # A bug is not a user error: its own exception, with its traceback.
+    from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParser
+
+    def bug(self, split="train", **kwargs):
+        raise ValueError("a bug")
+
+    monkeypatch.setattr(LowLightDataParser, "_generate_dataparser_outputs", bug)
+    with pytest.raises(ValueError, match="a bug"):
+        _train(_config(toy_scene, tmp_path / "outputs2"))
+    with pytest.raises(ValueError, match="a bug"):
+        eval_utils.eval_setup(copied / "config.yml")
 
 
 def test_unwritable_output_dir_is_one_line(toy_scene, tmp_path, monkeypatch):
