@@ -57,7 +57,12 @@ USER_ERRORS = frozenset(
         "naka_gs_plugin.data.images.ImageReadError",
         "naka_gs_plugin.data.lowlight_dataparser.LowLightDataError",
         "naka_gs_plugin.data.safe_io.UnsafeOutputError",
+        "naka_gs_plugin.enhance.checkpoint.CorrectionWeightsError",
+        "naka_gs_plugin.enhance.checkpoint.CorrectionWeightsNotFoundError",
+        "naka_gs_plugin.enhance.pipeline.EnhanceOptionError",
+        "naka_gs_plugin.model.lpips.LPIPSWeightsError",
         "naka_gs_plugin.model.naka_gs_model.NonFiniteTrainingError",
+        "naka_gs_plugin.model.naka_gs_model.RasterizerOptionError",
         "naka_gs_plugin.points.align.AlignmentError",
         "naka_gs_plugin.points.sfm.SfMError",
         "naka_gs_plugin.points.sources.PointSourceError",
@@ -66,10 +71,10 @@ USER_ERRORS = frozenset(
         "naka_gs_plugin.sim.spec.SimSpecError",
     }
 )
-"""The plugin's exceptions for a problem the user can fix, by qualified name: each message is one line naming
-the file or option and the fix. Named, not imported (points.sfm imports pycolmap): a class whose module is not
-loaded cannot have been raised. tests/test_run_folder.py checks that every ``*Error`` class of the package is
-here or is a ``SystemExit`` already."""
+"""The plugin's exceptions for a problem the user can fix (a bad file, an option out of range), by qualified
+name: each message is one line naming the file or option and the fix. Named, not imported (points.sfm imports
+pycolmap): a class whose module is not loaded cannot have been raised. tests/test_run_folder.py checks that every
+``*Error`` class of the package is here or is a ``SystemExit`` already."""
 
 
 def user_error_exit(err: BaseException) -> Optional[SystemExit]:

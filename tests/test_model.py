@@ -12,6 +12,7 @@ from nerfstudio.models.splatfacto import RGB2SH, SplatfactoModel
 from naka_gs_plugin.data.images import read_rgb
 from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig
 from naka_gs_plugin.model.appearance import ViewAppearance
+from naka_gs_plugin.model.lpips import LPIPSWeightsError
 from naka_gs_plugin.model.naka_gs_model import NakaGSModelConfig, NonFiniteTrainingError, viewmat_from_c2w
 from tests.helpers import train_steps
 
@@ -108,9 +109,9 @@ def test_a_wrong_lpips_weights_file_stops_in_one_line(tmp_path):
     other = tmp_path / "other.pth"
     torch.save({"conv.weight": torch.zeros(3, 3)}, other)
     for path, says in ((truncated, "not a readable torch weights file"), (other, "not AlexNet weights")):
-        with pytest.raises(SystemExit) as info:
+        with pytest.raises(LPIPSWeightsError) as info:  # one line "naka-gs: ..." under ns-train (USER_ERRORS)
             _model(lpips_weights=path)
-        message = str(info.value.code)
+        message = str(info.value)
         assert "\n" not in message and str(path) in message and says in message, message
         assert "--pipeline.model.lpips-weights" in message
 

@@ -431,6 +431,69 @@ def test_a_plugin_error_is_one_line_in_ns_train_and_when_loading_a_run(run, toy_
         eval_utils.eval_setup(copied / "config.yml")
 
 
+def _bad_option(weights: Path) -> Dict[str, tuple]:
+    """Rows of the test below: (config overrides, the one line ns-train ends with)."""
+    naka = "--pipeline.datamanager.enhance.correction"
+    fix = f"or pass {naka} default (the shipped weights) or none (Naka only)"
+    lpips_fix = "pass torchvision's alexnet-owt-7be5be79.pth or leave the option out (weights ship with naka-gs)"
+    return {
+        "sigma": (
+            {"pipeline.datamanager.enhance.sigma": -1.0},
+            "naka-gs: --pipeline.datamanager.enhance.sigma must be > 0 or auto, got -1.0 (default 0.05)",
+        ),
+        "correction weights missing": (
+            {"pipeline.datamanager.enhance.correction": str(weights / "nope.pt")},
+            f"naka-gs: correction weights {weights / 'nope.pt'} not found (no such file): pass {naka} none "
+            "(Naka only) or the path of a checkpoint",
+        ),
+        "correction weights corrupt": (  # found when the first step enhances the training images
+            {"pipeline.datamanager.enhance.correction": str(weights / "corrupt.pt")},
+            f"naka-gs: {naka} {weights / 'corrupt.pt'} is not a readable torch checkpoint (UnpicklingError): "
+            f"re-save it with torch.save -- {fix}",
+        ),
+        "lpips weights bad": (
+            {"pipeline.model.lpips_weights": weights / "cut.pth"},
+            f"naka-gs: --pipeline.model.lpips-weights {weights / 'cut.pth'}: not a readable torch weights file "
+            f"(RuntimeError) -- {lpips_fix}",
+        ),
+        "rasterizer": (  # found at the first render
+            {"pipeline.model.rasterizer": "gsplat"},
+            "naka-gs: rasterizer 'gsplat' needs CUDA tensors but the model is on cpu -- use "
+            "--pipeline.model.rasterizer cpu-fast, torch or auto",
+        ),
+        "sh degree": (  # in use only after 4 * sh_degree_interval steps: refused at the first render instead
+            {"pipeline.model.sh_degree": 4},
+            "naka-gs: --pipeline.model.sh-degree 4: the cpu-fast rasterizer supports degrees 0..3 -- use "
+            "--pipeline.model.sh-degree 3 or less",
+        ),
+    }
+
+
+@pytest.mark.parametrize("row", sorted(_bad_option(Path("w"))))
+def test_a_bad_option_or_weights_file_is_one_line_in_ns_train(row, toy_scene, tmp_path, capsys):
+    """A bad ``--pipeline.*`` value or weights file ends ns-train with one ``naka-gs:`` line naming the option (exit
+    status 1, no traceback), before or at the first step; the scene and the files named are left as they were."""
+    weights = tmp_path / "weights"
+    weights.mkdir()
+    (weights / "corrupt.pt").write_bytes(b"not a torch checkpoint")
+    (weights / "cut.pth").write_bytes(b"PK\x03\x04" + b"\0" * 100)  # a zip header, then nothing: a cut-off download
+    overrides, expected = _bad_option(weights)[row]
+    config = _config(toy_scene, tmp_path / "outputs", steps=2)
+    for dotted, value in overrides.items():
+        *parents, name = dotted.split(".")
+        target = config
+        for parent in parents:
+            target = getattr(target, parent)
+        setattr(target, name, value)
+    before = _snapshot(toy_scene, weights)
+    with pytest.raises(SystemExit) as exc:
+        _train(config)
+    assert exc.value.code == expected
+    captured = capsys.readouterr()
+    assert "Traceback" not in captured.out + captured.err
+    assert _snapshot(toy_scene, weights) == before
+
+
 def test_unwritable_output_dir_is_one_line(toy_scene, tmp_path, monkeypatch):
     locked = tmp_path / "locked"
     locked.mkdir()

@@ -26,6 +26,15 @@ DEFAULT_WEIGHTS = Path(str(files("naka_gs_plugin.enhance") / "weights" / "chroma
 """The shipped weights (``EnhanceConfig.correction = "default"``)."""
 
 
+class CorrectionWeightsError(ValueError):
+    """A correction checkpoint that cannot be loaded (not a torch file, not this network's weights): a problem
+    the user fixes by passing another file. The message is one line naming the file."""
+
+
+class CorrectionWeightsNotFoundError(FileNotFoundError, CorrectionWeightsError):
+    """A correction checkpoint path that names no file."""
+
+
 def _conv_unit_keys(theirs: str, ours: str) -> Dict[str, str]:
     """Their ``ConvAct`` (``block.0`` conv without bias, ``block.1`` GroupNorm) -> our ``ConvUnit``."""
     return {
@@ -129,24 +138,25 @@ def save_correction(net: ChromaGuided, path: Path, half: bool = True, extra: Opt
 def load_correction(path: Union[str, Path]) -> ChromaGuided:
     """A :class:`ChromaGuided` in eval mode, float32, from our checkpoint or the authors' (see module doc).
 
-    Raises ``FileNotFoundError``/``ValueError`` with a one-line message naming ``path``.
+    Raises :class:`CorrectionWeightsNotFoundError` (a ``FileNotFoundError``) or :class:`CorrectionWeightsError`
+    (a ``ValueError``) with a one-line message naming ``path``.
     """
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"correction checkpoint {path} not found: pass an existing .pt/.pth file")
+        raise CorrectionWeightsNotFoundError(f"correction checkpoint {path} not found: pass an existing .pt/.pth file")
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # pickle/zip errors have many types; all mean "not a torch checkpoint"
-        raise ValueError(
+        raise CorrectionWeightsError(
             f"{path} is not a readable torch checkpoint ({type(err).__name__}): re-save it with torch.save"
         ) from None
     if not isinstance(ckpt, dict):
-        raise ValueError(
+        raise CorrectionWeightsError(
             f"{path} holds a {type(ckpt).__name__}, not a checkpoint dict: expected a naka-gs correction checkpoint"
         )
     state = ckpt.get("state_dict", ckpt.get("model", ckpt))
     if not isinstance(state, dict) or not all(isinstance(v, Tensor) for v in state.values()):
-        raise ValueError(
+        raise CorrectionWeightsError(
             f"{path} has no state dict under 'state_dict' or 'model': expected a naka-gs correction checkpoint"
         )
     authors = "stem.block.0.weight" in state
@@ -164,9 +174,9 @@ def load_correction(path: Union[str, Path]) -> ChromaGuided:
         )
     except (ValueError, TypeError, RuntimeError) as err:
         msg = " ".join(str(err).split())
-        raise ValueError(f"{path} does not fit the correction network: {msg[:300]}") from None
+        raise CorrectionWeightsError(f"{path} does not fit the correction network: {msg[:300]}") from None
     if incompatible.missing_keys or incompatible.unexpected_keys:
-        raise ValueError(
+        raise CorrectionWeightsError(
             f"{path} does not fit the correction network ({'authors' if authors else 'naka-gs'} layout): "
             f"{len(incompatible.missing_keys)} missing keys (e.g. {incompatible.missing_keys[:2]}), "
             f"{len(incompatible.unexpected_keys)} unexpected (e.g. {incompatible.unexpected_keys[:2]}); "

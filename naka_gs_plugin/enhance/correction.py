@@ -39,7 +39,13 @@ from torch import Tensor, nn
 from naka_gs_plugin.cpu import native_bf16
 
 # Re-exported: the enhancement pipeline takes the runner and the checkpoint helpers it keys on from here.
-from naka_gs_plugin.enhance.checkpoint import DEFAULT_WEIGHTS, file_digest, load_correction
+from naka_gs_plugin.enhance.checkpoint import (
+    DEFAULT_WEIGHTS,
+    CorrectionWeightsError,
+    CorrectionWeightsNotFoundError,
+    file_digest,
+    load_correction,
+)
 from naka_gs_plugin.enhance.correction_net import (
     STD_FLOOR,
     ChromaGuided,
@@ -54,6 +60,8 @@ __all__ = [
     "DEFAULT_MODE",
     "DEFAULT_WEIGHTS",
     "MODES",
+    "CorrectionWeightsError",
+    "CorrectionWeightsNotFoundError",
     "CorrectionRunner",
     "InferenceMode",
     "ModeName",

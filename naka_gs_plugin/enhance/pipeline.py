@@ -31,7 +31,14 @@ from naka_gs_plugin.cpu import fit_threads
 from naka_gs_plugin.data.cache import content_hash, default_cache_dir
 from naka_gs_plugin.data.safe_io import atomic_write
 from naka_gs_plugin.enhance.chroma import DEFAULT_BLUR
-from naka_gs_plugin.enhance.correction import DEFAULT_MODE, DEFAULT_WEIGHTS, ModeName, resolve_mode
+from naka_gs_plugin.enhance.correction import (
+    DEFAULT_MODE,
+    DEFAULT_WEIGHTS,
+    CorrectionWeightsError,
+    CorrectionWeightsNotFoundError,
+    ModeName,
+    resolve_mode,
+)
 from naka_gs_plugin.enhance.exposure import METERED_TARGET
 from naka_gs_plugin.enhance.stages import (
     CHAIN,
@@ -58,6 +65,12 @@ RETIRED: Dict[str, Tuple[Any, str]] = {
 (each measurement: docs/real-scenes.md, Levers)."""
 LEGACY_DEFAULTS = {"chroma": "network", "exposure_metering": "mean", "exposure_curve": "power"}
 """What runs saved before an option existed did (their ``config.yml`` lacks the key)."""
+CORRECTION_OPTION = "--pipeline.datamanager.enhance.correction"
+
+
+class EnhanceOptionError(ValueError):
+    """An :class:`EnhanceConfig` value out of its range (``sigma``, ``n``, ``exposure``, ``chroma-blur``): one line
+    naming the ``--pipeline.datamanager.enhance.*`` option, the value and the default."""
 
 
 @dataclass
@@ -128,19 +141,19 @@ class Enhancer:
         self.last_run = {"computed": 0, "cached": 0, "seconds": 0.0}
         """Counts of the last :meth:`enhance_images` call: images computed vs read from cache."""
         if config.sigma != "auto" and not (isinstance(config.sigma, (int, float)) and config.sigma > 0):
-            raise ValueError(
+            raise EnhanceOptionError(
                 f"--pipeline.datamanager.enhance.sigma must be > 0 or auto, got {config.sigma!r} (default 0.05)"
             )
         if config.exposure != "none" and not (isinstance(config.exposure, (int, float)) and 0 < config.exposure < 1):
-            raise ValueError(
+            raise EnhanceOptionError(
                 f"--pipeline.datamanager.enhance.exposure must be in (0, 1) or none, got {config.exposure!r} (default {METERED_TARGET})"
             )
         if not (isinstance(config.chroma_blur, (int, float)) and config.chroma_blur > 0):
-            raise ValueError(
+            raise EnhanceOptionError(
                 f"--pipeline.datamanager.enhance.chroma-blur must be > 0 pixels, got {config.chroma_blur!r} (default {DEFAULT_BLUR})"
             )
         if not config.n > 0:
-            raise ValueError(f"--pipeline.datamanager.enhance.n must be > 0, got {config.n!r} (default 1.0)")
+            raise EnhanceOptionError(f"--pipeline.datamanager.enhance.n must be > 0, got {config.n!r} (default 1.0)")
         fit_threads()  # the heavy stages (correction network, cpu-fast rasterizer) follow this count
         self.correction_path = config.correction_path() if config.method == "naka" else None
         self.correction_mode = resolve_mode(config.correction_mode, device)
@@ -154,9 +167,9 @@ class Enhancer:
                 if config.correction == "default"
                 else "no such file"
             )
-            raise FileNotFoundError(
-                f"[naka-gs] correction weights {self.correction_path} not found ({hint}): pass "
-                "--pipeline.datamanager.enhance.correction none (Naka only) or the path of a checkpoint"
+            raise CorrectionWeightsNotFoundError(
+                f"correction weights {self.correction_path} not found ({hint}): pass "
+                f"{CORRECTION_OPTION} none (Naka only) or the path of a checkpoint"
             )
         self.view_stages: List[ViewStage] = []
         """Applied to each view, in order, before the cache."""
@@ -169,6 +182,12 @@ class Enhancer:
         self.correction: Optional[CorrectionStage] = next(
             (stage for stage in self.view_stages if isinstance(stage, CorrectionStage)), None
         )
+
+    def _correction_fix(self) -> str:
+        """What to pass instead of correction weights that do not load."""
+        if self.config.correction == "default":
+            return f"reinstall naka-gs (its shipped weights are damaged) or pass {CORRECTION_OPTION} none (Naka only)"
+        return f"or pass {CORRECTION_OPTION} default (the shipped weights) or none (Naka only)"
 
     def key(self) -> str:
         """The parameter part of the cache key: every cached stage's :meth:`~Stage.key`, as JSON."""
@@ -234,7 +253,10 @@ class Enhancer:
         seconds: Dict[str, float] = {stage.name: 0.0 for stage in self.view_stages}
         if todo:
             for stage in self.view_stages:
-                stage.prepare(images)  # scene statistics read every view, cached or not
+                try:
+                    stage.prepare(images)  # scene statistics read every view, cached or not
+                except CorrectionWeightsError as err:  # the network loads here, on first use
+                    raise type(err)(f"{CORRECTION_OPTION} {err} -- {self._correction_fix()}") from None
             chain = "; ".join(stage.describe() for stage in self.view_stages)
             with StageProgress() as progress:
                 task = progress.add_task(f"{description} ({chain})", total=len(todo))

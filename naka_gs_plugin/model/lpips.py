@@ -32,6 +32,11 @@ CONVS = (0, 3, 6, 8, 10)
 """Indices of the convolutions in ``alexnet().features``."""
 
 
+class LPIPSWeightsError(ValueError):
+    """An LPIPS weights file (``--pipeline.model.lpips-weights``) that is missing, unreadable or not AlexNet's
+    weights: one line naming the file and the fix."""
+
+
 class LPIPS(nn.Module):
     """LPIPS v0.1 with the AlexNet backbone, as torchmetrics' ``normalize=True`` and nerfstudio use it.
 
@@ -71,10 +76,10 @@ def load_lpips(weights: Optional[Path] = None) -> LPIPS:
     """The metric with the shipped weights, or with the AlexNet backbone of ``weights``.
 
     ``weights``: our ``lpips_alex.pt`` format, or torchvision's ``alexnet-owt-7be5be79.pth`` (its
-    ``features.*`` tensors; the linear layers then come from the shipped file). Raises ``ValueError``
-    with one line naming the file when it is unreadable or is not AlexNet's weights. Leaves torch's
-    random state as it found it (the layers' random initialisation is overwritten anyway), so that
-    evaluating during training never changes the training that follows.
+    ``features.*`` tensors; the linear layers then come from the shipped file). Raises
+    :class:`LPIPSWeightsError` (a ``ValueError``) with one line naming the file when it is missing, unreadable
+    or not AlexNet's weights. Leaves torch's random state as it found it (the layers' random initialisation is
+    overwritten anyway), so that evaluating during training never changes the training that follows.
     """
     with torch.random.fork_rng(devices=[]):
         model = LPIPS()
@@ -85,17 +90,21 @@ def load_lpips(weights: Optional[Path] = None) -> LPIPS:
         try:
             given = torch.load(path, map_location="cpu", weights_only=True)
         except FileNotFoundError:
-            raise ValueError(f"{path}: LPIPS weights file not found -- {fix}") from None
+            raise LPIPSWeightsError(f"{path}: LPIPS weights file not found -- {fix}") from None
         except Exception as err:  # truncated zip, pickle with code, not a torch file at all
-            raise ValueError(f"{path}: not a readable torch weights file ({err.__class__.__name__}) -- {fix}") from None
+            raise LPIPSWeightsError(
+                f"{path}: not a readable torch weights file ({err.__class__.__name__}) -- {fix}"
+            ) from None
         expected = {k: v.shape for k, v in model.state_dict().items()}
         backbone = [f"features.{i}.{p}" for i in CONVS for p in ("weight", "bias")]
         if not isinstance(given, dict) or not all(
             isinstance(given.get(k), Tensor) and given[k].shape == expected[k] for k in backbone
         ):
-            raise ValueError(f"{path}: not AlexNet weights (no features.0-10 tensors of AlexNet's shapes) -- {fix}")
+            raise LPIPSWeightsError(
+                f"{path}: not AlexNet weights (no features.0-10 tensors of AlexNet's shapes) -- {fix}"
+            )
         if not all(torch.isfinite(given[k]).all() for k in backbone):
-            raise ValueError(f"{path}: AlexNet weights with NaN or infinite values -- {fix}")
+            raise LPIPSWeightsError(f"{path}: AlexNet weights with NaN or infinite values -- {fix}")
         state.update({k: given[k].float() for k in backbone})
     model.load_state_dict(state)
     return model

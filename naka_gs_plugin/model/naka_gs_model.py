@@ -37,11 +37,17 @@ from torch import Tensor
 from torch.nn import Parameter
 
 from naka_gs_plugin.model.appearance import ViewAppearance
-from naka_gs_plugin.model.lpips import LazyLPIPS, load_lpips
+from naka_gs_plugin.model.lpips import LazyLPIPS, LPIPSWeightsError, load_lpips
+from naka_gs_plugin.model.projection import MAX_SH_DEGREE
 
 
 class NonFiniteTrainingError(RuntimeError):
     """Training produced NaN/Inf; raised before the bad state can be checkpointed."""
+
+
+class RasterizerOptionError(ValueError):
+    """A ``--pipeline.model.rasterizer`` (or ``sh-degree``) this machine's tensors or our rasterizers cannot run:
+    one line naming the option and what to pass instead."""
 
 
 @dataclass
@@ -104,8 +110,8 @@ class NakaGSModel(SplatfactoModel):
         if self.config.lpips_weights is not None:
             try:  # a wrong file fails here, in one line, rather than at the first evaluation
                 load_lpips(self.config.lpips_weights)
-            except ValueError as err:
-                raise SystemExit(f"naka-gs: --pipeline.model.lpips-weights {err}") from None
+            except LPIPSWeightsError as err:
+                raise LPIPSWeightsError(f"--pipeline.model.lpips-weights {err}") from None
         # Splatfacto imports LPIPS inside populate_modules; swap in ours (offline weights, lazy) there.
         with mock.patch(
             "torchmetrics.image.lpip.LearnedPerceptualImagePatchSimilarity",
@@ -134,14 +140,21 @@ class NakaGSModel(SplatfactoModel):
         if choice == "auto":
             choice = "gsplat" if device.type == "cuda" else ("cpu-fast" if _numba_available() else "torch")
         if choice == "gsplat" and device.type != "cuda":
-            raise ValueError(
+            raise RasterizerOptionError(
                 f"rasterizer 'gsplat' needs CUDA tensors but the model is on {device} -- "
                 "use --pipeline.model.rasterizer cpu-fast, torch or auto"
             )
         if choice == "cpu-fast" and device.type != "cpu":
-            raise ValueError(
+            raise RasterizerOptionError(
                 f"rasterizer 'cpu-fast' needs CPU tensors but the model is on {device} -- "
                 "use --pipeline.model.rasterizer gsplat (or auto)"
+            )
+        if choice != "gsplat" and not 0 <= self.config.sh_degree <= MAX_SH_DEGREE:
+            # Checked here, at the first render: the degree in use grows to sh_degree only after
+            # sh_degree * sh_degree_interval steps (thousands), when our rasterizers would refuse it.
+            raise RasterizerOptionError(
+                f"--pipeline.model.sh-degree {self.config.sh_degree}: the {choice} rasterizer supports degrees "
+                f"0..{MAX_SH_DEGREE} -- use --pipeline.model.sh-degree {MAX_SH_DEGREE} or less"
             )
         if choice != self._backend_logged:
             CONSOLE.log(

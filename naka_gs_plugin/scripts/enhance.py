@@ -44,7 +44,8 @@ from naka_gs_plugin.data.safe_io import (
     staging_dir,
 )
 from naka_gs_plugin.datamanager import LowLightDatamanagerConfig
-from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
+from naka_gs_plugin.enhance.checkpoint import CorrectionWeightsError
+from naka_gs_plugin.enhance.pipeline import EnhanceConfig, EnhanceOptionError, Enhancer
 from naka_gs_plugin.sheet import contact_sheet
 
 
@@ -189,7 +190,14 @@ def entrypoint(args: Optional[Sequence[str]] = None) -> None:
     cli = tyro.cli(Enhance, args=args)
     try:
         cli.main()
-    except (UnsafeOutputError, LowLightDataError, ImageReadError, OSError) as err:  # OSError: e.g. missing weights
+    except (
+        UnsafeOutputError,
+        LowLightDataError,
+        ImageReadError,
+        EnhanceOptionError,
+        CorrectionWeightsError,  # corrupt weights (missing ones are a FileNotFoundError too)
+        OSError,
+    ) as err:
         CONSOLE.print(f"naka-gs-enhance: {err}", markup=False, soft_wrap=True)
         sys.exit(2)
 
