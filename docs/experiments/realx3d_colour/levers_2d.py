@@ -8,6 +8,9 @@ applies the default exposure step and scores like ``naka-gs-enhance --reference`
   toe below code 10) instead of the sRGB curve before its chromaticity is taken;
 - ``cbcr A``: the capture's JPEG chroma (Cb, Cr of its sRGB codes) scaled by ``A`` first (undoing a
   desaturation of the dark frame);
+- ``eps E``: the neutral floor added to every channel before the ratio (default 1e-4, linear): a capture pixel
+  near black gets a grey chromaticity;
+- ``blur S``: the Gaussian low-pass on the capture, in pixels (default 3);
 - ``network``: the network's own colour (no capture chroma);
 - ``oracle``: the default output with one per-scene white balance fitted to the references (diagnosis only: a
   ceiling for any scene-wide colour correction, never a method).
@@ -44,7 +47,7 @@ def with_chroma(image, chroma):
     return kornia.color.linear_rgb_to_rgb((lum * chroma).clamp(0, 1)).permute(1, 2, 0)
 
 
-def capture_chroma(low, decode="srgb", cbcr=1.0, blur=3.0):
+def capture_chroma(low, decode="srgb", cbcr=1.0, blur=3.0, eps=1e-4):
     """The blurred capture's linear chromaticity, as :func:`naka_gs_plugin.enhance.chroma.capture_chroma`
     takes it, with the lever's decode or chroma scale."""
     k = max(3, int(3 * blur) | 1)
@@ -53,7 +56,7 @@ def capture_chroma(low, decode="srgb", cbcr=1.0, blur=3.0):
         ycc = kornia.color.rgb_to_ycbcr(cap)
         cap = kornia.color.ycbcr_to_rgb(torch.cat([ycc[:, :1], 0.5 + cbcr * (ycc[:, 1:] - 0.5)], 1))
     cap = cap[0].clamp(0, 1)
-    lin, eps = (linear(cap), 1e-4) if decode == "srgb" else (cap**decode, 1e-4 ** (decode / 2.4))
+    lin, eps = (linear(cap), eps) if decode == "srgb" else (cap**decode, eps ** (decode / 2.4))
     return (lin + eps) / (lin.mean(0, keepdim=True) + eps)
 
 
@@ -72,6 +75,10 @@ def main(levers):
             out = [with_chroma(i, capture_chroma(lo, decode=float(value))) for i, lo in zip(cached, lows)]
         elif kind == "cbcr":
             out = [with_chroma(i, capture_chroma(lo, cbcr=float(value))) for i, lo in zip(cached, lows)]
+        elif kind == "eps":
+            out = [with_chroma(i, capture_chroma(lo, eps=float(value))) for i, lo in zip(cached, lows)]
+        elif kind == "blur":
+            out = [with_chroma(i, capture_chroma(lo, blur=float(value))) for i, lo in zip(cached, lows)]
         elif kind == "network":
             naka, correction = dm.enhancer.view_stages[:2]
             naka.prepare(lows)
@@ -90,7 +97,7 @@ def main(levers):
                 lin = linear(image.permute(2, 0, 1)) * gains[:, None, None]
                 out.append(with_chroma(image, lin / lin.mean(0, keepdim=True).clamp(min=1e-8)))
         else:
-            raise SystemExit(f"unknown lever {lever!r}: decode:G, cbcr:A, network or oracle")
+            raise SystemExit(f"unknown lever {lever!r}: decode:G, cbcr:A, eps:E, blur:S, network or oracle")
         print(f"BlueHawaii, {lever}:", flush=True)
         score_against(ExposureStage().apply_all(out), refs, names)
 
