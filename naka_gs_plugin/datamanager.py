@@ -5,6 +5,10 @@ Training images are enhanced once, after loading and undistortion, by the config
 so metrics compare renders against the real normal-light ground truth. Scenes without
 ground-truth eval images (RealX3D) train without evaluation, and anything asking for eval images
 gets a one-line :class:`MissingGroundTruthError` (an exit, not a traceback).
+
+Commands that load a trained run (``ns-eval``, ``ns-render dataset``, ``ns-viewer``: a datamanager built
+with ``test_mode`` other than ``val``) read images after ``eval_setup``, outside ns-train's conversion of
+user errors: an image found unreadable there is the same one ``naka-gs:`` line (:attr:`LowLightDataset.loads_a_run`).
 """
 
 from __future__ import annotations
@@ -27,6 +31,7 @@ from naka_gs_plugin.cpu import keep_freed_memory
 from naka_gs_plugin.data.images import read_raw, read_rgb
 from naka_gs_plugin.data.lowlight_dataparser import LowLightDataError, LowLightDataParserConfig
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
+from naka_gs_plugin.trainer import user_error_exit
 
 FLAT_RANGE = 0.25 / 255.0
 """Least contrast of a training image (its 0.1-99.9 % pixel range, sRGB [0, 1]): a quarter of an 8-bit level.
@@ -51,6 +56,10 @@ class LowLightDataset(InputDataset):
     """
 
     _warned = False
+    loads_a_run = False
+    """Set by a datamanager built to load a trained run (``ns-eval``, ``ns-render dataset``...): a user error
+    reading an image (:data:`~naka_gs_plugin.trainer.USER_ERRORS`) is then the one line ``naka-gs: <message>``
+    (exit status 1). Under training the trainer converts them itself; other callers get the exception."""
 
     @property
     def has_ground_truth(self) -> bool:
@@ -80,6 +89,15 @@ class LowLightDataset(InputDataset):
         return torch.from_numpy(np.ascontiguousarray(image))
 
     def get_data(self, image_idx: int, image_type: Literal["uint8", "float32"] = "float32") -> Dict:
+        try:
+            return self._get_data(image_idx, image_type)
+        except Exception as err:
+            exit_ = user_error_exit(err) if self.loads_a_run else None
+            if exit_ is None:
+                raise
+            raise exit_ from None
+
+    def _get_data(self, image_idx: int, image_type: Literal["uint8", "float32"]) -> Dict:
         if self.has_ground_truth:
             return super().get_data(image_idx, image_type)
         if not LowLightDataset._warned:
@@ -126,6 +144,8 @@ class LowLightDatamanager(FullImageDatamanager[LowLightDataset]):
             # "cpu" pins memory, which needs an NVIDIA driver; "gpu" means "this datamanager's device".
             self.config.cache_images = "gpu"
         self.enhancer = Enhancer(self.config.enhance, device=device)
+        for dataset in (self.train_dataset, self.eval_dataset):
+            dataset.loads_a_run = test_mode != "val"
         self.has_ground_truth = bool(self.eval_dataset)
         if not self.has_ground_truth:
             self.eval_unseen_cameras = []

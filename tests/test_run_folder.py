@@ -324,6 +324,38 @@ def test_ns_eval_without_ground_truth_is_one_line(run, toy_scene, tmp_path):
     assert _snapshot(copied, scene) == before
 
 
+def test_an_image_broken_after_training_is_one_line_in_ns_eval_and_ns_render(run, toy_scene, tmp_path, capsys):
+    """A test image truncated after training is read after eval_setup (ns-eval's metrics, ns-render's loop):
+    one ``naka-gs:`` line naming it (exit status 1), no traceback."""
+    scene = shutil.copytree(toy_scene, tmp_path / "scene")
+    image = scene / json.loads((scene / "transforms_test.json").read_text())["frames"][0]["file_path"]
+    _truncate(image)
+    copied = _copy_run(run, tmp_path / "outputs" / toy_scene.name / "naka-gs" / "run")
+    config = yaml.load((copied / "config.yml").read_text(), Loader=yaml.Loader)
+    config.data = config.pipeline.datamanager.data = config.pipeline.datamanager.dataparser.data = scene
+    config.output_dir = tmp_path / "outputs"  # as if trained there: the only naka-gs line is the image's
+    (copied / "config.yml").write_text(yaml.dump(config))
+    before = _snapshot(copied, scene)
+    from nerfstudio.scripts.eval import ComputePSNR
+    from nerfstudio.scripts.render import DatasetRender
+
+    out = tmp_path / "out"
+    for command in (
+        ComputePSNR(load_config=copied / "config.yml", output_path=out / "eval.json"),
+        DatasetRender(load_config=copied / "config.yml", output_path=out, split="test"),
+    ):
+        with pytest.raises(SystemExit) as exc:  # the console script prints its message: exit status 1
+            command.main()
+        assert exc.value.code == (
+            f"naka-gs: {image}: unreadable image (truncated, corrupt or not a PNG/JPEG/TIFF) -- restore the complete "
+            "file (copy it again from the camera or backup) or remove it from the scene"
+        ), type(command).__name__
+    captured = capsys.readouterr()
+    assert _naka_lines(captured.out + captured.err) == [] and "Traceback" not in captured.out + captured.err
+    assert not out.exists()
+    assert _snapshot(copied, scene) == before
+
+
 def test_missing_data_is_one_line_and_leaves_no_run_folder(tmp_path):
     with pytest.raises(SystemExit) as exc:
         _train(_config(tmp_path / "nowhere", tmp_path / "outputs"))
