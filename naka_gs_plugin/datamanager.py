@@ -31,7 +31,7 @@ from naka_gs_plugin.cpu import keep_freed_memory
 from naka_gs_plugin.data.images import read_raw, read_rgb
 from naka_gs_plugin.data.lowlight_dataparser import LowLightDataError, LowLightDataParserConfig
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
-from naka_gs_plugin.trainer import user_error_exit
+from naka_gs_plugin.errors import user_error_exit
 
 FLAT_RANGE = 0.25 / 255.0
 """Least contrast of a training image (its 0.1-99.9 % pixel range, sRGB [0, 1]): a quarter of an 8-bit level.
@@ -58,7 +58,7 @@ class LowLightDataset(InputDataset):
     _warned = False
     loads_a_run = False
     """Set by a datamanager built to load a trained run (``ns-eval``, ``ns-render dataset``...): a user error
-    reading an image (:data:`~naka_gs_plugin.trainer.USER_ERRORS`) is then the one line ``naka-gs: <message>``
+    reading an image (:data:`~naka_gs_plugin.errors.USER_ERRORS`) is then the one line ``naka-gs: <message>``
     (exit status 1). Under training the trainer converts them itself; other callers get the exception."""
 
     @property

@@ -7,7 +7,7 @@
   older one, and fail with one line naming the folder when none is valid.
 - SIGTERM is handled as Ctrl-C; either one before the first training step has finished (while the
   training images load and are enhanced, which can take minutes) stops at once, nothing to save.
-- One of the plugin's own errors for a problem the user can fix (:data:`USER_ERRORS`: a bad scene file,
+- One of the plugin's own errors for a problem the user can fix (:data:`~naka_gs_plugin.errors.USER_ERRORS`: a bad scene file,
   image, point source) ends ``ns-train`` with the one line ``naka-gs: <message>`` (exit status 1)
   instead of nerfstudio's traceback; any other exception is a bug and keeps its traceback.
 
@@ -43,6 +43,8 @@ from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from naka_gs_plugin.errors import user_error_exit
+
 INTERRUPTED_EXIT_CODE = 130  # 128 + SIGINT, what shells report for a Ctrl-C'd command; SIGTERM exits with it too
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 CHECKPOINT_NAME = re.compile(r"step-(\d+)\.ckpt")
@@ -50,39 +52,6 @@ CHECKPOINT_NAME = re.compile(r"step-(\d+)\.ckpt")
 # first "."]) and take the largest (eval_utils.eval_load_checkpoint). A temporary file left by a kill
 # therefore has to parse, and to step 0, so that it never outranks a real checkpoint.
 PARTIAL_PREFIX = "tmp-0."
-
-
-USER_ERRORS = frozenset(
-    {
-        "naka_gs_plugin.data.images.ImageReadError",
-        "naka_gs_plugin.data.lowlight_dataparser.LowLightDataError",
-        "naka_gs_plugin.data.safe_io.UnsafeOutputError",
-        "naka_gs_plugin.enhance.checkpoint.CorrectionWeightsError",
-        "naka_gs_plugin.enhance.checkpoint.CorrectionWeightsNotFoundError",
-        "naka_gs_plugin.enhance.pipeline.EnhanceOptionError",
-        "naka_gs_plugin.model.lpips.LPIPSWeightsError",
-        "naka_gs_plugin.model.naka_gs_model.NonFiniteTrainingError",
-        "naka_gs_plugin.model.naka_gs_model.RasterizerOptionError",
-        "naka_gs_plugin.points.align.AlignmentError",
-        "naka_gs_plugin.points.sfm.SfMError",
-        "naka_gs_plugin.points.sources.PointSourceError",
-        "naka_gs_plugin.scripts.ppm.PpmOutputError",
-        "naka_gs_plugin.scripts.process_data.ProcessDataError",
-        "naka_gs_plugin.sim.spec.SimSpecError",
-    }
-)
-"""The plugin's exceptions for a problem the user can fix (a bad file, an option out of range), by qualified
-name: each message is one line naming the file or option and the fix. Named, not imported (points.sfm imports
-pycolmap): a class whose module is not loaded cannot have been raised. tests/test_run_folder.py checks that every
-``*Error`` class of the package is here or is a ``SystemExit`` already."""
-
-
-def user_error_exit(err: BaseException) -> Optional[SystemExit]:
-    """``SystemExit("naka-gs: <message>")`` (exit status 1, no traceback) for one of :data:`USER_ERRORS`, else
-    None: any other exception is a bug and keeps its traceback."""
-    if any(f"{cls.__module__}.{cls.__qualname__}" in USER_ERRORS for cls in type(err).__mro__):
-        return SystemExit(f"naka-gs: {err}")
-    return None
 
 
 def checkpoint_step(path: Path) -> Optional[int]:
@@ -148,7 +117,7 @@ class NakaGSTrainer(Trainer):
     def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
         """Upstream's setup, plus a callback that records the last fully completed step. A setup that fails
         removes the run folder ``save_config`` has just made (nothing was trained into it); a user error
-        (:data:`USER_ERRORS`: an empty ``--data`` folder, a truncated COLMAP model...) is then one line."""
+        (:data:`~naka_gs_plugin.errors.USER_ERRORS`: an empty ``--data`` folder, a truncated COLMAP model...) is then one line."""
         self._stop_step: Optional[int] = None  # the step running when the first Ctrl-C / SIGTERM came
         self._stop_name = "interrupted"  # "Ctrl-C" or "SIGTERM" once one came
         self._done_step: Optional[int] = None  # the last step whose iteration and callbacks finished
@@ -175,7 +144,7 @@ class NakaGSTrainer(Trainer):
         Stopping between steps matters: an interrupt inside densification or an optimizer step would
         save parameters and optimizer state that no longer match. Before the first step has finished
         (the training images load and are enhanced inside it) there is nothing to save: it stops at once.
-        A user error (:data:`USER_ERRORS`: an unreadable training image, a diverged loss) is one line."""
+        A user error (:data:`~naka_gs_plugin.errors.USER_ERRORS`: an unreadable training image, a diverged loss) is one line."""
         self._catch_stop_signals()
         try:
             super().train()
@@ -390,7 +359,7 @@ def _remove_new_empty_output_dir(eval_setup_frame: FrameType) -> None:
 
 
 def loading_error_exit(frame: Optional[FrameType], data: Optional[Path], err: BaseException) -> Optional[SystemExit]:
-    """The one line to exit with when ``err``, a user error (:data:`USER_ERRORS`), was raised while nerfstudio's
+    """The one line to exit with when ``err``, a user error (:data:`~naka_gs_plugin.errors.USER_ERRORS`), was raised while nerfstudio's
     ``eval_setup`` (``frame``) set up the pipeline of the run it loads, whose scene is ``data``; else None.
 
     A scene folder no longer where config.yml records it (moved or deleted after training) is named with the

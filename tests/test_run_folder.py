@@ -33,13 +33,8 @@ from nerfstudio.utils import eval_utils
 
 from naka_gs_plugin.config import naka_gs_method
 from naka_gs_plugin.enhance.stages import NakaStage
-from naka_gs_plugin.trainer import (
-    INTERRUPTED_EXIT_CODE,
-    USER_ERRORS,
-    NakaGSTrainer,
-    NakaGSTrainerConfig,
-    user_error_exit,
-)
+from naka_gs_plugin.errors import USER_ERRORS, user_error_exit
+from naka_gs_plugin.trainer import INTERRUPTED_EXIT_CODE, NakaGSTrainer, NakaGSTrainerConfig
 
 BIN = Path(sys.executable).parent
 
