@@ -21,6 +21,7 @@ Supported inputs (``load_points``):
 
 from __future__ import annotations
 
+import functools
 import json
 import struct
 from dataclasses import dataclass, field
@@ -143,8 +144,14 @@ def _centres(rec) -> Dict[str, np.ndarray]:
     return {im.name: np.asarray(im.projection_center(), np.float64) for im in rec.images.values() if im.has_pose}
 
 
-COLMAP_CAMERA_PARAMS = {0: 3, 1: 4, 2: 4, 3: 5, 4: 8, 5: 8, 6: 12, 7: 5, 8: 4, 9: 5, 10: 12, 11: 16}
-"""COLMAP camera model id -> number of parameters (cameras.bin)."""
+@functools.cache
+def colmap_camera_params() -> Dict[int, int]:
+    """COLMAP camera model id -> number of parameters (a cameras.bin record), from pycolmap itself, so models
+    added by a newer COLMAP are known (imported here: pycolmap is loaded only for COLMAP sources)."""
+    import pycolmap
+
+    models = (m for m in pycolmap.CameraModelId.__members__.values() if int(m) >= 0)
+    return {int(m): len(pycolmap.Camera.create_from_model_id(0, m, 1.0, 1, 1).params) for m in models}
 
 
 def _check_colmap_binary(folder: Path) -> None:
@@ -172,15 +179,16 @@ def _colmap_binary_problem(name: str, data: bytes) -> Optional[str]:
         return f"{end} bytes, no record count"
     (total,) = struct.unpack_from("<Q", data, 0)
     pos = 8
+    fixed = {"cameras.bin": 24, "images.bin": 64, "points3D.bin": 51}[name]  # bytes before a record's variable part
+    params = colmap_camera_params() if name == "cameras.bin" else {}
     for record in range(total):
-        fixed = {"cameras.bin": 24, "images.bin": 64, "points3D.bin": 51}[name]
         if pos + fixed > end:
             return f"record {record + 1} of {total} runs past the end at byte {end}"
         if name == "cameras.bin":
             (model,) = struct.unpack_from("<i", data, pos + 4)
-            if model not in COLMAP_CAMERA_PARAMS:
+            if model not in params:
                 return f"camera {record + 1} has unknown model id {model}"
-            pos += fixed + 8 * COLMAP_CAMERA_PARAMS[model]
+            pos += fixed + 8 * params[model]
         elif name == "images.bin":
             nul = data.find(b"\0", pos + fixed)  # the image name, NUL-terminated
             if nul < 0 or nul + 9 > end:
