@@ -112,6 +112,16 @@ def edit_frame0(scene: Path, **values) -> Path:
     return path
 
 
+def edit_frames(scene: Path, edit: Callable[[dict, dict], None]) -> Path:
+    """Apply ``edit(frame, first_frame)`` to every training frame in transforms_train.json."""
+    path = scene / "transforms_train.json"
+    meta = json.loads(path.read_text())
+    for frame in meta["frames"]:
+        edit(frame, meta["frames"][0])
+    path.write_text(json.dumps(meta))
+    return path
+
+
 def pose0(scene: Path) -> np.ndarray:
     return np.array(json.loads((scene / "transforms_train.json").read_text())["frames"][0]["transform_matrix"])
 
@@ -445,11 +455,7 @@ def cam_infinite_translation(env):
 def cam_bottom_rows_zero(env):
     """Every pose a 3x4 padded with a zero row: read as meant, with one warning (the scale as without it)."""
     s = env.scene()
-    path = s / "transforms_train.json"
-    meta = json.loads(path.read_text())
-    for frame in meta["frames"]:
-        frame["transform_matrix"][3] = [0, 0, 0, 0]
-    path.write_text(json.dumps(meta))
+    edit_frames(s, lambda frame, _: frame["transform_matrix"].__setitem__(3, [0, 0, 0, 0]))
     expected = parse(env.toy)().dataparser_scale
     return lambda: (parse(s)(), expected), [s]
 
@@ -478,11 +484,7 @@ def cam_one_camera_far_out(env):
 
 def cam_all_at_one_position(env):
     s = env.scene()
-    path = s / "transforms_train.json"
-    meta = json.loads(path.read_text())
-    for frame in meta["frames"]:
-        frame["transform_matrix"] = meta["frames"][0]["transform_matrix"]
-    path.write_text(json.dumps(meta))
+    edit_frames(s, lambda frame, first: frame.update(transform_matrix=first["transform_matrix"]))
     return parse(s), [s]
 
 
