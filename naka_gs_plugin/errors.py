@@ -32,9 +32,12 @@ pycolmap): a class whose module is not loaded cannot have been raised. tests/tes
 ``*Error`` class of the package is here or is a ``SystemExit`` already."""
 
 
+def is_user_error(err: BaseException) -> bool:
+    """Whether ``err`` is one of :data:`USER_ERRORS` (or a subclass of one)."""
+    return any(f"{cls.__module__}.{cls.__qualname__}" in USER_ERRORS for cls in type(err).__mro__)
+
+
 def user_error_exit(err: BaseException) -> Optional[SystemExit]:
     """``SystemExit("naka-gs: <message>")`` (exit status 1, no traceback) for one of :data:`USER_ERRORS`, else
     None: any other exception is a bug and keeps its traceback."""
-    if any(f"{cls.__module__}.{cls.__qualname__}" in USER_ERRORS for cls in type(err).__mro__):
-        return SystemExit(f"naka-gs: {err}")
-    return None
+    return SystemExit(f"naka-gs: {err}") if is_user_error(err) else None

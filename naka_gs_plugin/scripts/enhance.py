@@ -34,7 +34,7 @@ import tyro
 from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 
-from naka_gs_plugin.data.images import ImageReadError, read_rgb
+from naka_gs_plugin.data.images import read_rgb
 from naka_gs_plugin.data.lowlight_dataparser import LowLightDataError, LowLightDataParserConfig, read_split
 from naka_gs_plugin.data.safe_io import (
     UnsafeOutputError,
@@ -44,8 +44,8 @@ from naka_gs_plugin.data.safe_io import (
     staging_dir,
 )
 from naka_gs_plugin.datamanager import LowLightDatamanagerConfig
-from naka_gs_plugin.enhance.checkpoint import CorrectionWeightsError
-from naka_gs_plugin.enhance.pipeline import EnhanceConfig, EnhanceOptionError, Enhancer
+from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
+from naka_gs_plugin.errors import is_user_error
 from naka_gs_plugin.sheet import contact_sheet
 
 
@@ -190,14 +190,9 @@ def entrypoint(args: Optional[Sequence[str]] = None) -> None:
     cli = tyro.cli(Enhance, args=args)
     try:
         cli.main()
-    except (
-        UnsafeOutputError,
-        LowLightDataError,
-        ImageReadError,
-        EnhanceOptionError,
-        CorrectionWeightsError,  # corrupt weights (missing ones are a FileNotFoundError too)
-        OSError,
-    ) as err:
+    except Exception as err:
+        if not (is_user_error(err) or isinstance(err, OSError)):  # OSError: disk full or permissions, names the file
+            raise
         CONSOLE.print(f"naka-gs-enhance: {err}", markup=False, soft_wrap=True)
         sys.exit(2)
 
