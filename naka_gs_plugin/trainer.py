@@ -275,15 +275,40 @@ class NakaGSTrainer(Trainer):
         """Upstream's loading of the newest valid checkpoint that ``--load-dir`` / ``--load-checkpoint`` allow."""
         chosen = self.checkpoint_to_resume()
         if chosen is None:
-            return super()._load_checkpoint()
-        # Upstream's --load-checkpoint branch loads exactly one file; point it at the chosen one for the call.
-        config = self.config
-        saved = config.load_dir, config.load_checkpoint
-        config.load_dir, config.load_checkpoint = None, chosen
-        try:
             super()._load_checkpoint()
-        finally:
-            config.load_dir, config.load_checkpoint = saved
+        else:
+            # Upstream's --load-checkpoint branch loads exactly one file; point it at the chosen one for the call.
+            config = self.config
+            saved = config.load_dir, config.load_checkpoint
+            config.load_dir, config.load_checkpoint = None, chosen
+            try:
+                super()._load_checkpoint()
+            finally:
+                config.load_dir, config.load_checkpoint = saved
+        self._rebind_optimizers()
+
+    def _rebind_optimizers(self) -> None:
+        """Point every optimizer at the pipeline's current parameters, moving their loaded state along.
+
+        Splatfacto's ``load_state_dict`` replaces each Gaussian parameter with a new ``Parameter`` of the
+        checkpoint's size, after the optimizers were built on the old (seed-sized) ones; upstream leaves them
+        there, so a resumed run stepped tensors the model no longer uses and its Gaussians stayed frozen
+        (until a densification step rebound them, with fresh Adam moments). Parameters are matched by
+        group name and position; their loaded Adam state moves with them.
+        """
+        groups = self.pipeline.get_param_groups()
+        for name, optimizer in self.optimizers.optimizers.items():
+            current = groups.get(name)
+            if current is None or len(optimizer.param_groups) != 1:
+                continue
+            group = optimizer.param_groups[0]
+            if len(group["params"]) != len(current):
+                continue
+            for old, new in zip(group["params"], current):
+                if old is not new and old in optimizer.state:
+                    optimizer.state[new] = optimizer.state.pop(old)
+            group["params"] = list(current)
+            self.optimizers.parameters[name] = current
 
     def checkpoint_to_resume(self) -> Optional[Path]:
         """The checkpoint to resume from: the requested one (the newest in ``--load-dir`` unless ``--load-step``

@@ -8,6 +8,7 @@ runs in-process on stub trainers.
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import inspect
 import os
@@ -260,3 +261,37 @@ def test_no_valid_checkpoint_is_one_line_naming_the_folder_and_the_fix(interrupt
         f"naka-gs: --load-dir {tmp_path / 'nowhere'}: no step-*.ckpt checkpoint there; "
         "point it at a run's nerfstudio_models folder"
     )
+
+
+# ------------------------------------------------------------------------------------- 4. resumed training
+def _toy_trainer(scene: Path, out: Path, steps: int, **config) -> NakaGSTrainer:
+    """The ``naka-gs`` method's trainer on ``scene``, in this process, built as ``ns-train`` builds it."""
+    from naka_gs_plugin.config import naka_gs_method
+
+    cfg = copy.deepcopy(naka_gs_method.config)
+    cfg.pipeline.datamanager.data = scene
+    cfg.pipeline.model.num_random = 500
+    settings = dict(output_dir=out, timestamp="run", vis="tensorboard", max_num_iterations=steps, steps_per_save=steps,
+                    steps_per_eval_image=10**9, steps_per_eval_all_images=10**9, **config)  # fmt: skip
+    for key, value in settings.items():
+        setattr(cfg, key, value)
+    trainer = cfg.setup(local_rank=0, world_size=1)
+    trainer.setup(test_mode="val")
+    return trainer
+
+
+def test_a_resumed_run_keeps_optimizing_its_gaussians_with_their_adam_state(toy_scene, tmp_path):
+    first = _toy_trainer(toy_scene, tmp_path / "a", 3)
+    first.train()
+    folder = first.checkpoint_dir
+    saved = torch.load(max(folder.glob("step-*.ckpt")), map_location="cpu", weights_only=False)
+    resumed = _toy_trainer(toy_scene, tmp_path / "b", 1, load_dir=folder)
+    model, optimizers = resumed.pipeline.model, resumed.optimizers.optimizers
+    for name, param in model.gauss_params.items():
+        bound = optimizers[name].param_groups[0]["params"]
+        assert len(bound) == 1 and bound[0] is param, f"the {name} optimizer steps a tensor the model does not use"
+        moments = optimizers[name].state[param]["exp_avg"]
+        torch.testing.assert_close(moments, saved["optimizers"][name]["state"][0]["exp_avg"], rtol=0, atol=0)
+    before = model.means.detach().clone()
+    resumed.train()
+    assert not torch.equal(model.means.detach(), before), "the resumed step left the Gaussians where they were"
