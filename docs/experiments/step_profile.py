@@ -2,9 +2,11 @@
 
 Resumes a trained run (past step 6,000, so every step is at full size) for STEPS steps under cProfile,
 in this process, with evaluation and saving out of the window, and prints the wall per step and the
-functions with the most own time and the most cumulative time. From the repository root:
+functions with the most own time and the most cumulative time. With KEEP, the run's Gaussians are first
+pruned to the KEEP most opaque ones (gsplat's ``remove``, optimizer and strategy state included), to see
+the per-pixel cost that does not depend on the Gaussians. From the repository root:
 
-    .venv/bin/python docs/experiments/step_profile.py CONFIG [STEPS]
+    .venv/bin/python docs/experiments/step_profile.py CONFIG [STEPS] [KEEP]
         e.g. outputs/bench/lom-holdout/runs/bike/naka-gs/naka-gs/config.yml (a warm cache: no enhancement)
 """
 
@@ -14,10 +16,12 @@ import sys
 import time
 from pathlib import Path
 
+import torch
 import yaml
+from gsplat.strategy.ops import remove
 
 
-def main(config_path: Path, steps: int) -> None:
+def main(config_path: Path, steps: int, keep: int | None) -> None:
     config = yaml.load(config_path.read_text(), Loader=yaml.Loader)
     config.load_dir = config_path.parent / "nerfstudio_models"
     config.output_dir = Path("/tmp/naka-gs-step-profile")
@@ -28,17 +32,31 @@ def main(config_path: Path, steps: int) -> None:
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup(test_mode="val")
     _ = trainer.pipeline.datamanager.cached_train
+    model = trainer.pipeline.model
+    if keep is not None and keep < model.num_points:
+        opacity = model.gauss_params["opacities"].detach().squeeze(-1)
+        drop = torch.ones_like(opacity, dtype=torch.bool)
+        drop[torch.topk(opacity, keep).indices] = False
+        optimizers = {name: trainer.optimizers.optimizers[name] for name in model.gauss_params}
+        remove(model.gauss_params, optimizers, model.strategy_state, drop)
     profile = cProfile.Profile()
     start = time.perf_counter()
     profile.enable()
     trainer.train()
     profile.disable()
     wall = time.perf_counter() - start
-    print(f"{1000 * wall / steps:.1f} ms per step over {steps} steps ({trainer.pipeline.model.num_points} Gaussians)")
+    print(
+        f"{1000 * wall / steps:.1f} ms per step over {steps} steps ({model.num_points} Gaussians, "
+        f"{torch.get_num_threads()} threads)"
+    )
     stats = pstats.Stats(profile)
-    stats.sort_stats("tottime").print_stats(25)
-    stats.sort_stats("cumulative").print_stats(45)
+    stats.sort_stats("tottime").print_stats(30)
+    stats.sort_stats("cumulative").print_stats(60)
 
 
 if __name__ == "__main__":
-    main(Path(sys.argv[1]), int(sys.argv[2]) if len(sys.argv) > 2 else 50)
+    main(
+        Path(sys.argv[1]),
+        int(sys.argv[2]) if len(sys.argv) > 2 else 50,
+        int(sys.argv[3]) if len(sys.argv) > 3 else None,
+    )

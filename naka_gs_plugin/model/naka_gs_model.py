@@ -14,6 +14,8 @@ stock splatfacto breaks on a CPU-only or offline machine:
   tile rasterizer (:mod:`naka_gs_plugin.model.rasterize_cpu_fast`) or our PyTorch one
   (:mod:`naka_gs_plugin.model.rasterize`) otherwise (never by try/except around gsplat: each
   failed call re-attempts a CUDA JIT build).
+- the SSIM of the loss and the eval metric: splatfacto's ``pytorch_msssim`` module, with compiled
+  kernels for CPU images (:mod:`naka_gs_plugin.model.ssim`; on CUDA it is upstream's).
 - per-view appearance (``appearance affine``, :mod:`naka_gs_plugin.model.appearance`): a gain and
   offset per training view, applied to its render in training only (after splatfacto's bilateral grid
   would be); ``get_param_groups`` adds their group.
@@ -39,6 +41,7 @@ from torch.nn import Parameter
 from naka_gs_plugin.model.appearance import ViewAppearance
 from naka_gs_plugin.model.lpips import LazyLPIPS, LPIPSWeightsError, load_lpips
 from naka_gs_plugin.model.projection import MAX_SH_DEGREE
+from naka_gs_plugin.model.ssim import SSIMLoss
 
 
 class NonFiniteTrainingError(RuntimeError):
@@ -118,6 +121,8 @@ class NakaGSModel(SplatfactoModel):
             lambda **_: LazyLPIPS(self.config.lpips_weights),
         ):
             super().populate_modules()
+        # Splatfacto's SSIM module, with compiled kernels for CPU images (the same loss and metric).
+        self.ssim = SSIMLoss(data_range=1.0, size_average=True, channel=3)
         if seed_rgb is not None:
             self.seed_points = (self.seed_points[0], seed_rgb)
             rgb = seed_rgb.float() / 255.0
