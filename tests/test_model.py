@@ -243,3 +243,25 @@ def test_appearance_absorbs_one_views_exposure(frames):
         ratios = torch.stack([model.view_appearance(c, i).mean() / c.mean() for i, c in enumerate(canonical)])
     others = torch.cat([ratios[:2], ratios[3:]])
     assert ratios[2] < 0.8 and others.min() > ratios[2] + 0.15, f"rendered / canonical brightness per view: {ratios}"
+
+
+def test_the_loss_uses_the_compiled_ssim_with_upstreams_value_and_gradient(frames):
+    from pytorch_msssim import SSIM
+
+    from naka_gs_plugin.model.ssim import SSIMLoss
+
+    cameras, images = frames
+    model, _, _ = _model()
+    assert isinstance(model.ssim, SSIMLoss)
+    model.train()
+    model.step, model.optimizers = 0, {}
+    results = []
+    for ssim in (model.ssim, SSIM(data_range=1.0, size_average=True, channel=3)):
+        model.ssim = ssim
+        model.zero_grad()
+        torch.manual_seed(0)  # splatfacto's training background is random
+        loss = model.get_loss_dict(model.get_outputs(cameras[0:1]), {"image": images[0]})["main_loss"]
+        loss.backward()
+        results.append((loss.detach(), model.means.grad.clone()))
+    torch.testing.assert_close(results[0][0], results[1][0], rtol=0, atol=1e-6)
+    torch.testing.assert_close(results[0][1], results[1][1], rtol=1e-3, atol=1e-3 * float(results[1][1].abs().max()))

@@ -1,0 +1,100 @@
+"""The compiled SSIM (``naka_gs_plugin.model.ssim.SSIMLoss``) against its reference, ``pytorch_msssim``.
+
+Forward and backward of the fused kernels are checked with ``assert_close`` against pytorch_msssim evaluated
+in float64 (the exact value of what both compute in float32), on images as splatfacto passes them (NCHW
+views of HWC tensors); inputs the kernels do not take run pytorch_msssim itself.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numba
+import pytest
+import torch
+from pytorch_msssim import SSIM
+
+from naka_gs_plugin.model.ssim import SSIMLoss
+
+REFERENCE = SSIM(data_range=1.0, size_average=True, channel=3)
+FUSED = SSIMLoss(data_range=1.0, size_average=True, channel=3)
+
+
+def _pair(height: int, width: int, n: int = 1, noise: float = 0.1, seed: int = 0):
+    """A ground truth and a noisy prediction in [0, 1], HWC tensors seen as NCHW (as splatfacto's loss does)."""
+    gen = torch.Generator().manual_seed(seed)
+    gt = torch.rand(n, height, width, 3, generator=gen)
+    pred = (gt + noise * torch.randn(n, height, width, 3, generator=gen)).clamp(0, 1)
+    return gt, pred
+
+
+def _nchw(image: torch.Tensor) -> torch.Tensor:
+    return image.permute(0, 3, 1, 2)
+
+
+def _value_and_grads(module, gt, pred, grad_gt: bool, grad_pred: bool):
+    gt = gt.clone().requires_grad_(grad_gt)
+    pred = pred.clone().requires_grad_(grad_pred)
+    value = module(_nchw(gt), _nchw(pred))
+    if grad_gt or grad_pred:
+        (1 - value).backward()
+    return value.detach(), gt.grad, pred.grad
+
+
+@pytest.mark.parametrize("height, width, n", [(11, 11, 1), (36, 48, 1), (61, 45, 2), (120, 160, 1)])
+@pytest.mark.parametrize("grads", ["pred", "gt", "both"])
+def test_forward_and_backward_match_pytorch_msssim(height, width, n, grads):
+    gt, pred = _pair(height, width, n)
+    want = dict(grad_gt=grads in ("gt", "both"), grad_pred=grads in ("pred", "both"))
+    value, g_gt, g_pred = _value_and_grads(FUSED, gt, pred, **want)
+    ref_value, ref_gt, ref_pred = _value_and_grads(REFERENCE, gt.double(), pred.double(), **want)
+    assert value.dtype == torch.float32
+    torch.testing.assert_close(value.double(), ref_value, rtol=0, atol=2e-6)
+    for got, ref in ((g_gt, ref_gt), (g_pred, ref_pred)):
+        assert (got is None) == (ref is None)
+        if ref is not None:
+            scale = ref.abs().max()
+            torch.testing.assert_close(got.double(), ref, rtol=0, atol=1e-4 * float(scale))
+
+
+def test_identical_images_score_one_with_zero_gradient():
+    gt, _ = _pair(40, 30)
+    value, _, grad = _value_and_grads(FUSED, gt, gt.clone(), grad_gt=False, grad_pred=True)
+    torch.testing.assert_close(value, torch.tensor(1.0), rtol=0, atol=1e-6)
+    assert grad.abs().max() < 1e-6
+
+
+def test_results_do_not_depend_on_the_thread_count():
+    gt, pred = _pair(64, 80)
+    threads = numba.get_num_threads()
+    runs = []
+    try:
+        for count in (1, threads):
+            numba.set_num_threads(count)
+            runs.append(_value_and_grads(FUSED, gt, pred, grad_gt=False, grad_pred=True))
+    finally:
+        numba.set_num_threads(threads)
+    assert torch.equal(runs[0][0], runs[1][0]) and torch.equal(runs[0][2], runs[1][2])
+
+
+@pytest.mark.parametrize(
+    "case",
+    ["smaller than the window", "float64"],
+)
+def test_inputs_the_kernels_do_not_take_run_pytorch_msssim(case):
+    gt, pred = _pair(8, 20) if case == "smaller than the window" else _pair(30, 30)
+    if case == "float64":
+        gt, pred = gt.double(), pred.double()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # pytorch_msssim warns that it skips smoothing a dimension under 11 pixels
+        got = _value_and_grads(FUSED, gt, pred, grad_gt=False, grad_pred=True)
+        ref = _value_and_grads(REFERENCE, gt, pred, grad_gt=False, grad_pred=True)
+    assert torch.equal(got[0], ref[0]) and torch.equal(got[2], ref[2])
+
+
+def test_eval_metric_without_grad_equals_the_loss_value():
+    gt, pred = _pair(50, 70)
+    with torch.no_grad():
+        metric = FUSED(_nchw(gt), _nchw(pred))
+    value, _, _ = _value_and_grads(FUSED, gt, pred, grad_gt=False, grad_pred=True)
+    assert torch.equal(metric, value)
