@@ -254,3 +254,13 @@ def test_fused_kernels_keep_pytorch_thread_count():
         assert torch.get_num_threads() == 1
     finally:
         torch.set_num_threads(threads)
+
+
+@pytest.mark.parametrize("options", [{"method": "none"}, {"correction": "none"}])
+def test_no_correction_mode_is_chosen_or_printed_without_the_network(monkeypatch, capsys, options):
+    from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
+
+    monkeypatch.setattr(correction, "_RESOLVED", {})
+    enhancer = Enhancer(EnhanceConfig(**options))
+    assert enhancer.correction is None and enhancer.correction_mode == "auto"
+    assert "correction mode" not in capsys.readouterr().out

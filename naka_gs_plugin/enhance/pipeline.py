@@ -156,8 +156,10 @@ class Enhancer:
             raise EnhanceOptionError(f"--pipeline.datamanager.enhance.n must be > 0, got {config.n!r} (default 1.0)")
         fit_threads()  # the heavy stages (correction network, cpu-fast rasterizer) follow this count
         self.correction_path = config.correction_path() if config.method == "naka" else None
-        self.correction_mode = resolve_mode(config.correction_mode, device)
-        """The concrete inference mode (``auto`` resolved for this machine): part of the cache key."""
+        self.correction_mode = (
+            resolve_mode(config.correction_mode, device) if self.correction_path is not None else config.correction_mode
+        )
+        """The concrete inference mode (``auto`` resolved, and its choice printed, only where the network runs)."""
         on_cuda = torch.device(device).type == "cuda"
         self.correction_device = torch.device(device if on_cuda and self.correction_mode == "exact" else "cpu")
         """Where the correction network runs (only ``exact`` runs on a GPU); images are enhanced on the CPU."""
