@@ -41,7 +41,9 @@ class SSIMLoss(SSIM):
     def forward(self, X: Float[Tensor, "N C H W"], Y: Float[Tensor, "N C H W"]) -> Tensor:
         if not self._fused_applies(X, Y):
             return super().forward(X, Y)
-        window = self.win[0].flatten().to(torch.float32).numpy()  # the window pytorch_msssim convolves with
+        if getattr(self, "_window", None) is None:  # once: the window pytorch_msssim convolves with, as NumPy
+            self._window = self.win[0].flatten().to(torch.float32).numpy()
+        window = self._window
         k1, k2 = self.K
         return _fast_path()(X, Y, window, (k1 * self.data_range) ** 2, (k2 * self.data_range) ** 2)
 
