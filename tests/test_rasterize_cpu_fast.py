@@ -167,6 +167,43 @@ def test_empty_scenes():
     assert (alphas == 0).all()
 
 
+def test_a_gaussian_is_listed_only_in_the_tiles_its_ellipse_reaches(monkeypatch):
+    """A thin diagonal Gaussian's box covers a 4x4 block of tiles; only the tiles its
+    ``alpha >= 1/255`` pixels are in get a list entry (its box's other tiles would composite
+    nothing), and the render still equals the dense reference's."""
+    size = 64
+    means2d = torch.tensor([[[31.7, 32.2]]], dtype=F64)
+    # Covariance with variances 200 along the diagonal and 0.3 across it: its box spans the image.
+    rot = torch.tensor([[1.0, -1.0], [1.0, 1.0]], dtype=F64) / 2**0.5
+    cov = rot @ torch.diag(torch.tensor([200.0, 0.3], dtype=F64)) @ rot.T
+    inv = torch.linalg.inv(cov)
+    conics = torch.stack([inv[0, 0], inv[0, 1], inv[1, 1]])[None, None]
+    opacities = torch.tensor([[0.9]], dtype=F64)
+    colors = torch.tensor([[[0.2, 0.5, 0.8]]], dtype=F64)
+    depths = torch.ones(1, 1, dtype=F64)
+    radii = torch.tensor([[32]], dtype=torch.int32)
+    rasterize_cpu_fast.warm_up(F64)  # compiles the kernels before one is wrapped
+    kernel, listed = rasterize_cpu_fast._forward_kernel, []
+
+    def forward_kernel(*args):
+        listed.append(args[1].copy())  # tile_start
+        return kernel(*args)
+
+    monkeypatch.setattr(rasterize_cpu_fast, "_forward_kernel", forward_kernel)
+    args = (means2d, conics, colors, opacities, depths, radii, size, size)
+    out, alpha = rasterize_to_pixels_cpu_fast(*args)
+    tiles_listed = set(torch.nonzero(torch.from_numpy(listed[0]).diff() > 0).flatten().tolist())
+    ys, xs = torch.meshgrid(torch.arange(size, dtype=F64) + 0.5, torch.arange(size, dtype=F64) + 0.5, indexing="ij")
+    dx, dy = means2d[0, 0, 0] - xs, means2d[0, 0, 1] - ys
+    a, b, c = conics[0, 0]
+    reached = 0.9 * torch.exp(-(0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy)) >= ALPHA_MIN
+    tiles_reached = {int(t) for t in torch.unique((ys[reached] // 16) * 4 + xs[reached] // 16)}
+    assert tiles_listed == tiles_reached and len(tiles_reached) < 16
+    dense_out, dense_alpha = rasterize_to_pixels_dense(*args)
+    torch.testing.assert_close(out, dense_out)
+    torch.testing.assert_close(alpha, dense_alpha)
+
+
 def test_results_do_not_depend_on_the_thread_count():
     scene = make_scene(300, 70, 50, seed=7)
     weights = _weights(scene, 3, F32)
@@ -215,7 +252,7 @@ def test_backward_without_the_forward_store_gives_the_same_results(monkeypatch):
     kernel, store_sizes = rasterize_cpu_fast._forward_kernel, []
 
     def forward_kernel(*args):
-        store_sizes.append(args[-2].size)  # vis_store
+        store_sizes.append(args[-1].size)  # vis_store
         return kernel(*args)
 
     monkeypatch.setattr(rasterize_cpu_fast, "_forward_kernel", forward_kernel)

@@ -6,24 +6,25 @@ Same interface, conventions and results as :mod:`naka_gs_plugin.model.rasterize`
 reference's rounded, within rounding of the torch path's float32 arithmetic), the depth sort (a
 stable radix sort), the tile binning, compositing and its backward, and the per-Gaussian reduction.
 
-Layout (as gsplat's CUDA path): the image is cut into 16x16 tiles; every visible Gaussian
-(``radius > 0``, ``opacity >= 1/255``) is listed, in stable depth order, in each tile its pixel box
-(:func:`~naka_gs_plugin.model.projection.pixel_bounds`) overlaps. Unlike gsplat, which evaluates
-every Gaussian of a tile, a Gaussian only touches the pixels of its box, so exactly the pairs of the
-torch path are composited. Forward (``prange`` over tiles): front to back with
-``alpha = min(0.999, opacity * exp(-sigma))``, pairs with ``sigma < 0`` or ``alpha < 1/255``
-skipped, a pixel stops *before* the pair that would bring its transmittance to ``<= 1e-4``;
-transmittance is carried in float64 and the final transmittance and the number of list entries up
-to the last contributing one are stored per pixel. Backward (``prange`` over tiles): each pixel's
-list is walked back to front from that last entry, recovering the transmittance by division (and
-reusing the ``exp(-sigma)`` and row spans the forward stored, up to ``VIS_STORE_MAX``), with
-the gradients for 2D means (and their per-pixel absolute values, gsplat's ``absgrad``), conics,
-opacities and colours summed per (tile, list entry) slot; a pass parallel over Gaussians then adds
-each one's slots up in tile order, so there are no races and the result does not depend on the
-thread count.
+Layout (as gsplat's CUDA path): the image is cut into 16x16 tiles. On each row of its pixel box
+(:func:`~naka_gs_plugin.model.projection.pixel_bounds`) a visible Gaussian (``radius > 0``,
+``opacity >= 1/255``) visits only the columns of its lenient ``alpha >= 1/255`` ellipse (the torch
+path's enumeration), computed once per row before the kernels; it is listed, in stable depth order,
+in each tile those row spans reach (not every tile of its box: for trained scenes two thirds of
+those would composite nothing). Unlike gsplat, which evaluates every Gaussian of a tile, a Gaussian
+only touches the pixels of its spans, so exactly the pairs of the torch path are composited.
+Forward (``prange`` over tiles): front to back with ``alpha = min(0.999, opacity * exp(-sigma))``,
+pairs with ``sigma < 0`` or ``alpha < 1/255`` skipped, a pixel stops *before* the pair that would
+bring its transmittance to ``<= 1e-4``; transmittance is carried in float64 and the final
+transmittance and the number of list entries up to the last contributing one are stored per pixel.
+Backward (``prange`` over tiles): each pixel's list is walked back to front from that last entry,
+recovering the transmittance by division (and reusing the ``exp(-sigma)`` the forward stored, one
+per span pixel, up to ``VIS_STORE_MAX``), with the gradients for 2D means (and their per-pixel
+absolute values, gsplat's ``absgrad``), conics, opacities and colours summed per (tile, list
+entry) slot; a pass parallel over Gaussians then adds each one's slots up in tile order, so there
+are no races and the result does not depend on the thread count.
 
-On each row of its box a Gaussian visits only the columns of its lenient ``alpha >= 1/255`` ellipse
-(the torch path's enumeration). ``sigma`` and ``alpha`` are computed in the inputs' dtype,
+``sigma`` and ``alpha`` are computed in the inputs' dtype,
 operation for operation as the torch path (so the same pairs pass the 1/255 test, and the
 backward re-derives exactly the forward's alphas); gradients accumulate in float64. No
 ``fastmath``: contraction into FMAs or approximate ``exp`` would let the forward, the backward and
@@ -72,9 +73,9 @@ CONSOLE = Console(width=120)
 """rich's console, as nerfstudio's (this module imports without nerfstudio, e.g. on the GPU machine)."""
 
 VIS_STORE_MAX = 1 << 27
-"""Most ``exp(-sigma)`` values (one per box pixel of each list entry; ~3x the composited pairs for
-trained-scene-like Gaussians) the forward keeps for the backward (512 MB in float32); beyond, the
-backward recomputes them (slower, same results)."""
+"""Most ``exp(-sigma)`` values (one per row-span pixel of each list entry; ~1.4x the composited
+pairs for trained-scene-like Gaussians) the forward keeps for the backward (512 MB in float32);
+beyond, the backward recomputes them (slower, same results)."""
 
 N_GRAD = 8
 """Per-Gaussian gradient columns before the colours: d means2d (2), |d means2d| (2), d conics (3),
@@ -162,47 +163,92 @@ def _make_records(entries, means2d, conics, opacities, colors, radii_f, consts, 
     return records, boxes
 
 
+@njit(parallel=True, cache=True)
+def _row_spans(records, boxes, ys):
+    """Per record and row of its box, the columns ``[lo, hi]`` of its lenient ellipse
+    (:func:`_row_span`, image columns; ``lo > hi``: none), in ``spans[row_start[j] + py - y_lo]``."""
+    n = boxes.shape[0]
+    row_start = np.zeros(n + 1, dtype=np.int64)
+    for j in range(n):
+        row_start[j + 1] = row_start[j] + max(boxes[j, 3] - boxes[j, 2] + 1, 0)
+    spans = np.empty((row_start[n], 2), dtype=np.int32)
+    for j in prange(n):
+        rec = records[j]
+        mx, my, a, b = rec[0], rec[1], rec[2], rec[3]
+        level, det = np.float64(rec[10]), np.float64(rec[11])
+        for py in range(boxes[j, 2], boxes[j, 3] + 1):
+            lo, hi = _row_span(my - ys[py], mx, a, b, level, det, boxes[j, 0], boxes[j, 1])
+            q = row_start[j] + py - boxes[j, 2]
+            spans[q, 0], spans[q, 1] = lo, max(hi, lo - 1)
+    return row_start, spans
+
+
+@njit(parallel=True, cache=True)
+def _tile_pixels(boxes, row_start, spans):
+    """Per record and tile of its box (row-major), how many of its row-span pixels fall in the tile;
+    ``box_start[j]`` is record ``j``'s first."""
+    n = boxes.shape[0]
+    box_start = np.zeros(n + 1, dtype=np.int64)
+    for j in range(n):
+        box_start[j + 1] = box_start[j] + (boxes[j, 1] // TILE_SIZE - boxes[j, 0] // TILE_SIZE + 1) * (
+            boxes[j, 3] // TILE_SIZE - boxes[j, 2] // TILE_SIZE + 1
+        )
+    pixels = np.zeros(box_start[n], dtype=np.int64)
+    for j in prange(n):
+        tx0, tx1 = boxes[j, 0] // TILE_SIZE, boxes[j, 1] // TILE_SIZE
+        for py in range(boxes[j, 2], boxes[j, 3] + 1):
+            q = row_start[j] + py - boxes[j, 2]
+            lo, hi = np.int64(spans[q, 0]), np.int64(spans[q, 1])
+            if lo > hi:
+                continue
+            band = box_start[j] + (py // TILE_SIZE - boxes[j, 2] // TILE_SIZE) * (tx1 - tx0 + 1)
+            for tx in range(lo // TILE_SIZE, hi // TILE_SIZE + 1):
+                pixels[band + tx - tx0] += min(hi, tx * TILE_SIZE + TILE_SIZE - 1) - max(lo, tx * TILE_SIZE) + 1
+    return box_start, pixels
+
+
 @njit(cache=True)
-def _bin_tiles(boxes, entries, n_gauss, n_cams, tiles_x, tiles_y):
-    """CSR lists, per tile, of the record indices whose box overlaps it, in record (depth) order;
-    per record the list (slot) positions it got, in increasing tile order; and per slot the start
-    of its box-in-tile pixels in the forward's ``exp(-sigma)`` store (``vis_start``) and of its
-    box-in-tile rows in the forward's row-span store (``span_start``)."""
+def _bin_tiles(boxes, entries, n_gauss, n_cams, tiles_x, tiles_y, box_start, pixels):
+    """CSR lists, per tile, of the record indices whose lenient ellipse has a pixel in it (a row
+    span of :func:`_row_spans`; the tiles its box only grazes would composite nothing), in record
+    (depth) order; per record the list (slot) positions it got, in increasing tile order; and per
+    slot the start of its pixels in the forward's ``exp(-sigma)`` store (``vis_start``)."""
     tiles_per_cam = tiles_x * tiles_y
     counts = np.zeros(n_cams * tiles_per_cam + 1, dtype=np.int64)
     rec_start = np.zeros(boxes.shape[0] + 1, dtype=np.int64)
     for j in range(boxes.shape[0]):
         base = (entries[j] // n_gauss) * tiles_per_cam
-        ty0, ty1 = boxes[j, 2] // TILE_SIZE, boxes[j, 3] // TILE_SIZE
         tx0, tx1 = boxes[j, 0] // TILE_SIZE, boxes[j, 1] // TILE_SIZE
-        for ty in range(ty0, ty1 + 1):
+        q = box_start[j]
+        for ty in range(boxes[j, 2] // TILE_SIZE, boxes[j, 3] // TILE_SIZE + 1):
             for tx in range(tx0, tx1 + 1):
-                counts[base + ty * tiles_x + tx + 1] += 1
-        rec_start[j + 1] = rec_start[j] + (ty1 - ty0 + 1) * (tx1 - tx0 + 1)
+                if pixels[q] > 0:
+                    counts[base + ty * tiles_x + tx + 1] += 1
+                    rec_start[j + 1] += 1
+                q += 1
+        rec_start[j + 1] += rec_start[j]
     tile_start = np.cumsum(counts)
     fill = tile_start[:-1].copy()
     tile_items = np.empty(tile_start[-1], dtype=np.int32)
     rec_slots = np.empty(tile_start[-1], dtype=np.int64)
     vis_start = np.zeros(tile_start[-1] + 1, dtype=np.int64)
-    span_start = np.zeros(tile_start[-1] + 1, dtype=np.int64)
     for j in range(boxes.shape[0]):
         base = (entries[j] // n_gauss) * tiles_per_cam
-        q = rec_start[j]
+        tx0, tx1 = boxes[j, 0] // TILE_SIZE, boxes[j, 1] // TILE_SIZE
+        q, slot = box_start[j], rec_start[j]
         for ty in range(boxes[j, 2] // TILE_SIZE, boxes[j, 3] // TILE_SIZE + 1):
-            for tx in range(boxes[j, 0] // TILE_SIZE, boxes[j, 1] // TILE_SIZE + 1):
-                tile = base + ty * tiles_x + tx
-                tile_items[fill[tile]] = j
-                rec_slots[q] = fill[tile]
-                cols = min(boxes[j, 1], tx * TILE_SIZE + TILE_SIZE - 1) - max(boxes[j, 0], tx * TILE_SIZE) + 1
-                rows = min(boxes[j, 3], ty * TILE_SIZE + TILE_SIZE - 1) - max(boxes[j, 2], ty * TILE_SIZE) + 1
-                vis_start[fill[tile] + 1] = cols * rows
-                span_start[fill[tile] + 1] = rows
+            for tx in range(tx0, tx1 + 1):
+                if pixels[q] > 0:
+                    tile = base + ty * tiles_x + tx
+                    tile_items[fill[tile]] = j
+                    rec_slots[slot] = fill[tile]
+                    vis_start[fill[tile] + 1] = pixels[q]
+                    fill[tile] += 1
+                    slot += 1
                 q += 1
-                fill[tile] += 1
     for k in range(tile_items.shape[0]):
         vis_start[k + 1] += vis_start[k]
-        span_start[k + 1] += span_start[k]
-    return tile_start, tile_items, rec_start, rec_slots, vis_start, span_start
+    return tile_start, tile_items, rec_start, rec_slots, vis_start
 
 
 @njit(parallel=True, cache=True)
@@ -271,13 +317,14 @@ def _tile_box(tile, tiles_x, tiles_y, width, height):
 
 @njit(parallel=True, cache=True)
 def _forward_kernel(
-    tile_order, tile_start, vis_start, span_start, records, xs, ys, consts, n_cams, width, height, vis_store, spans
+    tile_order, tile_start, vis_start, slot_rows, records, xs, ys, consts, n_cams, width, height, spans, vis_store
 ):
     """Composite every tile; returns colours without background, T_final (f64) and last entries.
-    Stores, for the backward to reuse instead of recomputing, the ``exp(-sigma)`` of every pair it
-    evaluated (0 for skipped pairs) in ``vis_store`` (unless it is shorter than ``vis_start[-1]``:
-    then the backward recomputes them) and every row span, relative to the tile's first column, in
-    ``spans`` (see :func:`_bin_tiles`)."""
+    Row ``py`` of slot ``k``'s record has the row span ``spans[slot_rows[k] + py]`` (see
+    :func:`_row_spans`). Stores, for the backward to reuse instead of recomputing, the
+    ``exp(-sigma)`` of every pair it evaluated (0 for skipped pairs) in ``vis_store``, slot ``k``'s
+    span pixels from ``vis_start[k]`` on, row by row (unless it is shorter than ``vis_start[-1]``:
+    then the backward recomputes them)."""
     tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
     tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
     n_dim = records.shape[1] - REC_COLORS
@@ -299,16 +346,16 @@ def _forward_kernel(
         for k in range(s, e):
             rec = records[k]
             mx, my, a, b, c, opacity = rec[0], rec[1], rec[2], rec[3], rec[4], rec[5]
-            bx0, bx1 = max(np.int64(rec[6]), x0), min(np.int64(rec[7]), x1 - 1)
             by0, by1 = max(np.int64(rec[8]), y0), min(np.int64(rec[9]), y1 - 1)
-            level, det = np.float64(rec[10]), np.float64(rec[11])
-            store = vis_start[k] - by0 * (bx1 - bx0 + 1) - bx0
+            pos = vis_start[k]
             for py in range(by0, by1 + 1):
+                lo = max(np.int64(spans[slot_rows[k] + py, 0]), x0)
+                hi = min(np.int64(spans[slot_rows[k] + py, 1]), x1 - 1)
+                if lo > hi:
+                    continue
                 dy = my - ys[py]
-                lo, hi = _row_span(dy, mx, a, b, level, det, bx0, bx1)
-                q = 2 * (span_start[k] + py - by0)
-                spans[q], spans[q + 1] = max(min(lo, x1) - x0, 0), max(hi, x0 - 1) - x0
-                row_store = store + py * (bx1 - bx0 + 1)
+                row_store = pos - lo
+                pos += hi - lo + 1
                 for px in range(lo, hi + 1):
                     i = (py - y0) * tw + (px - x0)
                     if done[i]:
@@ -344,7 +391,7 @@ def _backward_kernel(
     tile_order,
     tile_start,
     vis_start,
-    span_start,
+    slot_rows,
     records,
     xs,
     ys,
@@ -352,10 +399,10 @@ def _backward_kernel(
     n_cams,
     width,
     height,
+    spans,
     t_final,
     last,
     vis_store,
-    spans,
     grad_colors,
     grad_q,
     slots,
@@ -396,17 +443,19 @@ def _backward_kernel(
         for kk in range(k_end - 1, -1, -1):
             rec = records[s + kk]
             mx, my, a, b, c, opacity = rec[0], rec[1], rec[2], rec[3], rec[4], rec[5]
-            bx0, bx1 = max(np.int64(rec[6]), x0), min(np.int64(rec[7]), x1 - 1)
             by0, by1 = max(np.int64(rec[8]), y0), min(np.int64(rec[9]), y1 - 1)
-            store = vis_start[s + kk] - by0 * (bx1 - bx0 + 1) - bx0
+            rows = slot_rows[s + kk]
+            pos = vis_start[s + kk]
             # Scalars (kept in registers) for the geometry, the colour part in a small array.
             g_mx = g_my = g_absx = g_absy = g_ca = g_cb = g_cc = g_op = 0.0
             gcolor[:] = 0.0
             for py in range(by0, by1 + 1):
+                lo, hi = max(np.int64(spans[rows + py, 0]), x0), min(np.int64(spans[rows + py, 1]), x1 - 1)
+                if lo > hi:
+                    continue
                 dy = my - ys[py]
-                q = 2 * (span_start[s + kk] + py - by0)
-                lo, hi = x0 + np.int64(spans[q]), x0 + np.int64(spans[q + 1])
-                row_store = store + py * (bx1 - bx0 + 1)
+                row_store = pos - lo
+                pos += hi - lo + 1
                 for px in range(lo, hi + 1):
                     i = (py - y0) * tw + (px - x0)
                     if kk >= last_local[i]:
@@ -591,7 +640,8 @@ def warm_up(dtype: torch.dtype = torch.float32) -> float:
             torch.set_num_threads(torch_threads)
     seconds = time.perf_counter() - started
     kernels = (
-        _visible_by_depth, _make_records, _bin_tiles, _gather_rows, _forward_kernel, _backward_kernel, _reduce_slots,
+        _visible_by_depth, _make_records, _row_spans, _tile_pixels, _bin_tiles, _gather_rows, _forward_kernel,
+        _backward_kernel, _reduce_slots,
         _project_forward, _project_backward, _sh_forward, _sh_backward,
     )  # fmt: skip
     misses = sum(sum(k.stats.cache_misses.values()) for k in kernels)
@@ -641,34 +691,37 @@ class _TileComposite(torch.autograd.Function):
             )
             tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
             tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
-            tile_start, tile_items, rec_start, rec_slots, vis_start, span_start = _bin_tiles(
-                boxes, entries, n, n_cams, tiles_x, tiles_y
+            xs = (torch.arange(width, dtype=dtype) + 0.5).numpy()  # pixel centres, as the torch path
+            ys = (torch.arange(height, dtype=dtype) + 0.5).numpy()
+            row_start, spans = _row_spans(records, boxes, ys)
+            tile_start, tile_items, rec_start, rec_slots, vis_start = _bin_tiles(
+                boxes, entries, n, n_cams, tiles_x, tiles_y, *_tile_pixels(boxes, row_start, spans)
             )
             kernel_args = (
                 _balanced_tile_order(tile_start),
                 tile_start,
                 vis_start,
-                span_start,
+                row_start[tile_items] - boxes[tile_items, 2],  # per slot: its record's row 0 in spans
                 _gather_rows(records, tile_items),
-                (torch.arange(width, dtype=dtype) + 0.5).numpy(),  # pixel centres, as the torch path
-                (torch.arange(height, dtype=dtype) + 0.5).numpy(),
+                xs,
+                ys,
                 consts,
                 n_cams,
                 width,
                 height,
+                spans,
             )
         with _stage("forward kernel"):
             n_vis = int(vis_start[-1])
             vis_store = _take_scratch("vis", n_vis, np_dtype) if n_vis <= VIS_STORE_MAX else np.zeros(0, np_dtype)
-            spans = _take_scratch("spans", 2 * int(span_start[-1]), np.int8)
-            out, t_final, last = _forward_kernel(*kernel_args, vis_store, spans)
+            out, t_final, last = _forward_kernel(*kernel_args, vis_store)
         out = torch.from_numpy(out)
         t_final_t = torch.from_numpy(t_final).to(dtype)
         if backgrounds is not None:
             out = out + (t_final_t.reshape(n_cams, -1, 1) * backgrounds[:, None, :].detach()).reshape(-1, dim)
         ctx.save_for_backward(means2d, backgrounds)
-        ctx.kernel_args = kernel_args + (t_final, last, vis_store, spans)
-        ctx.leases = [_ScratchLease("spans", spans)] + ([_ScratchLease("vis", vis_store)] if vis_store.size else [])
+        ctx.kernel_args = kernel_args + (t_final, last, vis_store)
+        ctx.leases = [_ScratchLease("vis", vis_store)] if vis_store.size else []
         ctx.slot_lists = (rec_start, rec_slots, entries)
         ctx.meta = (n_cams, n, dim, absgrad)
         return out.reshape(n_cams, height, width, dim), (1.0 - t_final_t).reshape(n_cams, height, width, 1)
@@ -677,7 +730,7 @@ class _TileComposite(torch.autograd.Function):
     def backward(ctx, grad_colors: Tensor, grad_alphas: Tensor):
         means2d, backgrounds = ctx.saved_tensors
         n_cams, n, dim, absgrad = ctx.meta
-        t_final = ctx.kernel_args[-4]
+        t_final = ctx.kernel_args[-3]
         dtype = grad_colors.dtype
         grad_colors = grad_colors.reshape(n_cams, -1, dim)
         upstream = -grad_alphas.reshape(n_cams, -1).double()
