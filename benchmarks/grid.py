@@ -144,17 +144,19 @@ def load_grid(path: Path) -> GridSpec:
         seed=int(raw.get("seed", 0)),
     )
     # Fail before the first run on a setting that does not exist.
-    from naka_gs_plugin.config import naka_gs_method
-
-    probe = copy.deepcopy(naka_gs_method.config)
     for settings in [
         spec.base,
         *spec.families.values(),
         *({k: v for k, v in s.items() if k not in ("data", "sim")} for s in scenes.values()),
     ]:
+        try:
+            probe = method_config(settings)
+        except KeyError as err:
+            raise BenchSpecError(f"{path}: {err.args[0]}") from None
         for key, value in settings.items():
             try:
-                set_setting(probe, key, value)
+                if key != "method":
+                    set_setting(probe, key, value)
             except (AttributeError, TypeError) as err:
                 raise BenchSpecError(f"{path}: setting '{key}': {err}") from None
     return spec
@@ -168,6 +170,16 @@ def _resolve(path: str, relative_to: Path) -> Path:
         if (root / p).exists():
             return (root / p).resolve()
     return config_file(p).resolve()
+
+
+def method_config(settings: Dict[str, Any]) -> Any:
+    """A fresh copy of the config of the preset ``settings["method"]`` names (default ``naka-gs``)."""
+    from naka_gs_plugin.config import METHODS
+
+    name = settings.get("method", "naka-gs")
+    if name not in METHODS:
+        raise KeyError(f"method '{name}' is not a naka-gs preset -- use one of {sorted(METHODS)}")
+    return copy.deepcopy(METHODS[name].config)
 
 
 def set_setting(config: Any, key: str, value: Any) -> None:
@@ -200,14 +212,12 @@ def run_one(run: Dict[str, Any], out: Path) -> Dict[str, Any]:
     import torch
     from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 
-    from naka_gs_plugin.config import naka_gs_method
-
     seed = int(run["seed"])
     random.seed(seed)
     np.random.seed(seed)
     torch.manual_seed(seed)
 
-    config = copy.deepcopy(naka_gs_method.config)
+    config = method_config(run["settings"])
     config.data = config.pipeline.datamanager.data = Path(run["data"])
     config.output_dir = out / "runs"
     config.experiment_name = run["scene"]
@@ -221,7 +231,8 @@ def run_one(run: Dict[str, Any], out: Path) -> Dict[str, Any]:
     # nerfstudio's periodic evaluations would land inside the timed training; milestones replace them.
     config.steps_per_eval_image = config.steps_per_eval_batch = config.steps_per_eval_all_images = last + 1
     for key, value in run["settings"].items():
-        set_setting(config, key, value)
+        if key != "method":
+            set_setting(config, key, value)
     config.max_num_iterations = last
     config.save_config()
 

@@ -79,6 +79,28 @@ def test_unknown_setting_is_rejected_naming_the_file(tmp_path, toy_scene):
         load_grid(grid)
 
 
+def test_a_family_starts_from_the_preset_it_names(tmp_path, toy_scene):
+    """``method: naka-gs-fast`` runs the fast preset's config (its schedule), other settings on top; a
+    name that is no preset is refused naming the file and the presets."""
+    from benchmarks.grid import grid_runs, method_config
+    from naka_gs_plugin.config import naka_gs_fast_method, naka_gs_method
+
+    grid = _grid(tmp_path, toy_scene, "  fast: {method: naka-gs-fast, sh_degree: 1}\n")
+    run = next(r for r in grid_runs(load_grid(grid), tmp_path) if r["family"] == "fast")
+    config = method_config(run["settings"])
+    fast, default = naka_gs_fast_method.config, naka_gs_method.config
+    assert config.method_name == "naka-gs-fast" and run["settings"]["sh_degree"] == 1
+    assert (
+        config.pipeline.model.stop_split_at == fast.pipeline.model.stop_split_at != default.pipeline.model.stop_split_at
+    )
+    assert config.optimizers["means"]["scheduler"].max_steps == fast.optimizers["means"]["scheduler"].max_steps
+    assert method_config({}).method_name == "naka-gs"
+    with pytest.raises(
+        BenchSpecError, match=r"grid\.yaml: method 'naka-gs-slow' is not a naka-gs preset.*naka-gs-fast"
+    ):
+        load_grid(_grid(tmp_path, toy_scene, "  slow: {method: naka-gs-slow}\n"))
+
+
 def test_settings_reach_into_the_optimizer_dict():
     """``optimizers.<group>.scheduler.max_steps`` sets that group's schedule; an unknown group is an error."""
     from naka_gs_plugin.config import naka_gs_method

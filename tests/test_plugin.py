@@ -14,10 +14,10 @@ def _run(*args):
     return subprocess.run([str(BIN / args[0]), *args[1:]], capture_output=True, text=True, env=env, timeout=300)
 
 
-def test_ns_train_help_lists_naka_gs():
+def test_ns_train_help_lists_naka_gs_and_its_fast_preset():
     res = _run("ns-train", "--help")
     assert res.returncode == 0, res.stderr[-2000:]
-    assert "naka-gs" in res.stdout
+    assert re.search(r"\bnaka-gs\b(?!-)", res.stdout) and "naka-gs-fast" in res.stdout
 
 
 def _options(method: str) -> set:
@@ -104,3 +104,25 @@ def test_cpu_schedule_stops_a_10k_decay_at_7k():
         assert (m.max_num_iterations, config.DECAY_STEPS) == (7000, 10000)
         assert m.pipeline.model.stop_split_at == config.DECAY_STEPS // 2
         assert m.pipeline.model.stop_split_at < m.max_num_iterations
+
+
+def test_the_fast_preset_is_the_default_schedule_shrunk():
+    """``naka-gs-fast`` is ``naka-gs`` with a shorter run: on a CPU 3k of a 4.3k-step schedule, every
+    densification, SH and resolution milestone at the same fraction of it; on CUDA the CPU default's
+    7k of 10k. Everything else (data, enhancement, model options) is the default's."""
+    from naka_gs_plugin import config
+
+    fast, default = config.naka_gs_fast_method.config, config.naka_gs_method.config
+    model = fast.pipeline.model
+    decay = fast.optimizers["means"]["scheduler"].max_steps
+    assert (fast.max_num_iterations, decay) == ((7000, 10000) if config.CUDA else (3000, 4300))
+    assert model.stop_split_at == decay // 2 and model.resolution_schedule == round(0.3 * decay)
+    assert model.stop_screen_size_at < model.stop_split_at < fast.max_num_iterations
+    # The default's own schedule is the same function of its decay (splatfacto's values on CUDA).
+    if not config.CUDA:
+        assert config.cpu_schedule(config.DECAY_STEPS) == {
+            k: getattr(default.pipeline.model, k) for k in config.CPU_SCHEDULE
+        }
+    assert fast.pipeline.datamanager == default.pipeline.datamanager
+    assert fast.pipeline.model.rasterizer == default.pipeline.model.rasterizer
+    assert fast.method_name == "naka-gs-fast"
