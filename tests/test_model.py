@@ -13,7 +13,7 @@ from naka_gs_plugin.data.images import read_rgb
 from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig
 from naka_gs_plugin.model.appearance import ViewAppearance
 from naka_gs_plugin.model.lpips import LPIPSWeightsError
-from naka_gs_plugin.model.naka_gs_model import NakaGSModelConfig, NonFiniteTrainingError, viewmat_from_c2w
+from naka_gs_plugin.model.naka_gs_model import NakaGSModelConfig, NonFiniteTrainingError, all_finite, viewmat_from_c2w
 from tests.helpers import train_steps
 
 
@@ -140,6 +140,18 @@ def test_non_finite_parameters_stop_training(frames):
         model.gauss_params["scales"][0, 0] = float("nan")
     with pytest.raises(NonFiniteTrainingError, match="non-finite Gaussian parameters \\(scales\\)"):
         model.step_post_backward(model.step)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_all_finite_agrees_with_isfinite_for_nan_and_both_infinities(dtype):
+    gen = torch.Generator().manual_seed(3)
+    tensor = torch.randn(200, 45, generator=gen, dtype=dtype) * 1e30
+    assert all_finite(tensor) and all_finite(tensor[:0])
+    for bad in (float("nan"), float("inf"), -float("inf")):
+        for where in ((0, 0), (117, 31), (199, 44)):
+            broken = tensor.clone()
+            broken[where] = bad
+            assert not all_finite(broken) and not torch.isfinite(broken).all()
 
 
 def test_non_finite_loss_stops_before_the_optimizer_step(frames):
