@@ -10,7 +10,8 @@ own process so that its peak memory is its own and a crash cannot take the grid 
 
 Settings are dotted paths into the nerfstudio ``TrainerConfig`` (``pipeline.model.sh_degree``),
 or one of the short aliases in :data:`ALIASES`. A path that does not exist is an error, never
-ignored.
+ignored. ``method: naka-gs-fast`` starts a family from another registered preset, trained for that
+preset's own length (evaluated at the grid's milestones before it and at its end).
 
 Per run the result records wall time of each stage (enhance, correction, points/PPM, training up
 to each milestone, rendering and evaluation), PSNR / SSIM / LPIPS,
@@ -319,18 +320,28 @@ def grid_runs(spec: GridSpec, out: Path) -> List[Dict[str, Any]]:
     for scene_name, scene in spec.scenes.items():
         scene_settings = {k: v for k, v in scene.items() if k not in ("data", "sim")}
         for family, settings in spec.families.items():
+            merged = {**spec.base, **scene_settings, **settings}
             runs.append(
                 {
                     "id": f"{scene_name}/{family}",
                     "scene": scene_name,
                     "family": family,
                     "scene_source": {k: scene[k] for k in ("data", "sim") if k in scene},
-                    "settings": {**spec.base, **scene_settings, **settings},
-                    "milestones": spec.milestones,
+                    "settings": merged,
+                    "milestones": _milestones(spec.milestones, merged),
                     "seed": spec.seed,
                 }
             )
     return runs
+
+
+def _milestones(milestones: List[int], settings: Dict[str, Any]) -> List[int]:
+    """The grid's milestones; a family that names a preset runs that preset's own length, so it is evaluated
+    at the grid's milestones before it and at its last step."""
+    if "method" not in settings:
+        return milestones
+    length = method_config(settings).max_num_iterations
+    return [m for m in milestones if m < length] + [length]
 
 
 def _scene_dir(source: Dict[str, str], spec: GridSpec, out: Path) -> Path:

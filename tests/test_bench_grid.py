@@ -80,8 +80,8 @@ def test_unknown_setting_is_rejected_naming_the_file(tmp_path, toy_scene):
 
 
 def test_a_family_starts_from_the_preset_it_names(tmp_path, toy_scene):
-    """``method: naka-gs-fast`` runs the fast preset's config (its schedule), other settings on top; a
-    name that is no preset is refused naming the file and the presets."""
+    """``method: naka-gs-fast`` runs the fast preset's config (its schedule and length), other settings on
+    top; a name that is no preset is refused naming the file and the presets."""
     from benchmarks.grid import grid_runs, method_config
     from naka_gs_plugin.config import naka_gs_fast_method, naka_gs_method
 
@@ -90,6 +90,7 @@ def test_a_family_starts_from_the_preset_it_names(tmp_path, toy_scene):
     config = method_config(run["settings"])
     fast, default = naka_gs_fast_method.config, naka_gs_method.config
     assert config.method_name == "naka-gs-fast" and run["settings"]["sh_degree"] == 1
+    assert run["milestones"] == [3, 6, fast.max_num_iterations]  # the grid's, then the preset's own length
     assert (
         config.pipeline.model.stop_split_at == fast.pipeline.model.stop_split_at != default.pipeline.model.stop_split_at
     )
