@@ -16,7 +16,10 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
-SCRIPTS = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
+PROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+SCRIPTS = PROJECT["scripts"]
+METHODS = PROJECT["entry-points"]["nerfstudio.method_configs"]
+"""``ns-train`` methods (presets): a span naming one alone is a method, not a command."""
 BIN = Path(sys.executable).parent
 """The venv's console scripts (the tests run with its python)."""
 
@@ -37,8 +40,10 @@ def command_of(text: str) -> Optional[Tuple[str, List[str]]]:
     name = words[0].removeprefix(".venv/bin/")
     if name == "python" and words[1:2] == ["-m"] and re.fullmatch(r"benchmarks\.\w+", " ".join(words[2:3])):
         return f"python -m {words[2]}", words[3:]
+    if name in METHODS:
+        return None
     if re.fullmatch(r"naka-gs-[a-z-]+", name) or (
-        name in NERFSTUDIO and (name != "ns-train" or words[1:2] == ["naka-gs"])
+        name in NERFSTUDIO and (name != "ns-train" or " ".join(words[1:2]) in METHODS)
     ):
         return name, words[1:]
     return None

@@ -586,8 +586,14 @@ def test_ctrl_c_while_enhancing_stops_after_the_image_in_hand(toy_scene, tmp_pat
 
     monkeypatch.setattr(NakaStage, "apply", apply)
     before = _snapshot(toy_scene)
-    with pytest.raises(SystemExit) as exc:
-        _train(_config(toy_scene, tmp_path / "outputs", steps=1000))
+    # Ctrl-C as in a terminal: a suite started in the background (`cmd &` in a script) inherits SIGINT ignored,
+    # which the trainer rightly leaves ignored.
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(SystemExit) as exc:
+            _train(_config(toy_scene, tmp_path / "outputs", steps=1000))
+    finally:
+        signal.signal(signal.SIGINT, previous)
     assert exc.value.code == INTERRUPTED_EXIT_CODE
     assert len(calls) == 3  # not the whole stage
     assert _naka_lines(capsys.readouterr().out)[-1] == (
