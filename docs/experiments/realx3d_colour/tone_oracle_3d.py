@@ -14,19 +14,28 @@ values. Each is a ceiling (fitted to the truth), never a method. From the reposi
 import sys
 from pathlib import Path
 
+import kornia
 import numpy as np
+import torch
 from PIL import Image
 
 LUMA = np.array([0.2126, 0.7152, 0.0722])
 
 
+def _channelwise(fn, x):
+    """Apply a kornia colour transform (channels first) to a channel-last NumPy array of any shape."""
+    flat = torch.from_numpy(np.ascontiguousarray(x.reshape(-1, 3).T))[:, :, None]
+    return fn(flat)[:, :, 0].T.numpy().reshape(x.shape)
+
+
 def linear(x):
-    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
+    """sRGB -> linear light (kornia's transfer function)."""
+    return _channelwise(kornia.color.rgb_to_linear_rgb, x)
 
 
 def encode(x):
-    x = np.clip(x, 0, 1)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)
+    """Linear light -> sRGB, clipped to [0, 1]."""
+    return _channelwise(kornia.color.linear_rgb_to_rgb, np.clip(x, 0, 1))
 
 
 def psnr(a, b):
