@@ -66,7 +66,7 @@ def test_sizes_and_blur_are_checked():
 def test_enhancer_takes_colour_from_the_capture_where_naka_alone_changes_it():
     truth = _patches(2)
     low = [kornia.color.linear_rgb_to_rgb((_linear(truth) * f).permute(2, 0, 1)).permute(1, 2, 0) for f in (0.02, 0.03)]
-    enhancer = Enhancer(EnhanceConfig(correction="none", exposure="none", use_cache=False))
+    enhancer = Enhancer(EnhanceConfig(correction="none", exposure="none", tone="network", use_cache=False))
     capture = enhancer.enhance_images(low)
     assert [stage.name for stage in enhancer.view_stages] == ["naka", "chroma"]
     plain = [naka_enhance(im) for im in low]

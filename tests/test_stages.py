@@ -14,7 +14,15 @@ from naka_gs_plugin.enhance.chroma import capture_chroma
 from naka_gs_plugin.enhance.correction_net import ChromaGuided, ChromaGuidedConfig
 from naka_gs_plugin.enhance.naka import naka_enhance
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
-from naka_gs_plugin.enhance.stages import CaptureChromaStage, CorrectionStage, ExposureStage, NakaStage, ViewStage
+from naka_gs_plugin.enhance.stages import (
+    CaptureChromaStage,
+    CaptureToneStage,
+    CorrectionStage,
+    ExposureStage,
+    NakaStage,
+    ViewStage,
+)
+from naka_gs_plugin.enhance.tone import capture_tone
 
 SMALL = ChromaGuidedConfig(widths=(8, 8, 8, 8), enc_residual=(0, 0, 0))
 
@@ -31,9 +39,13 @@ def _key(**options):
 def test_the_config_builds_the_chain_in_order(tmp_path):
     ckpt = save_correction(ChromaGuided(SMALL), tmp_path / "net.pt")
     enhancer = Enhancer(EnhanceConfig(correction=str(ckpt), correction_mode="exact"))
-    assert [type(s) for s in enhancer.view_stages] == [NakaStage, CorrectionStage, CaptureChromaStage]
+    assert [type(s) for s in enhancer.view_stages] == [NakaStage, CorrectionStage, CaptureChromaStage, CaptureToneStage]
     assert [type(s) for s in enhancer.scene_stages] == [ExposureStage]
-    assert [type(s) for s in Enhancer(EnhanceConfig(correction="none")).view_stages] == [NakaStage, CaptureChromaStage]
+    assert [type(s) for s in Enhancer(EnhanceConfig(correction="none")).view_stages] == [
+        NakaStage,
+        CaptureChromaStage,
+        CaptureToneStage,
+    ]
     assert Enhancer(EnhanceConfig(exposure="none")).scene_stages == []
     assert Enhancer(EnhanceConfig(method="none")).view_stages == []
 
@@ -65,7 +77,7 @@ def test_a_new_stage_is_one_class_plus_one_config_field(monkeypatch):
         return enhancer, enhancer.enhance_images(_images())
 
     plain, darker = run(1.0), run(0.5)
-    assert [s.name for s in plain[0].view_stages] == ["naka", "chroma", "tint"]
+    assert [s.name for s in plain[0].view_stages] == ["naka", "chroma", "tone", "tint"]
     assert plain[0]._keys(_images()) != darker[0]._keys(_images())
     for a, b in zip(plain[1], darker[1]):
         torch.testing.assert_close(b, (a * 0.5).clamp(0, 1), atol=2e-5, rtol=0)
@@ -73,7 +85,7 @@ def test_a_new_stage_is_one_class_plus_one_config_field(monkeypatch):
 
 @pytest.mark.parametrize(
     "option, value",
-    [("sigma", 0.07), ("sigma", "auto"), ("n", 0.8), ("chroma_blur", 5.0)],
+    [("sigma", 0.07), ("sigma", "auto"), ("n", 0.8), ("chroma_blur", 5.0), ("tone", "network")],
 )
 def test_every_option_that_changes_the_cached_views_changes_the_key(option, value):
     assert _key(**{option: value}) != _key()
@@ -95,12 +107,12 @@ def test_correction_is_keyed_by_weights_content_and_mode_not_path(tmp_path):
     assert a.key() != CorrectionStage.from_file(ckpt, "lean-f32", torch.device("cpu")).key()
 
 
-def test_the_chain_composes_naka_and_capture_chroma():
+def test_the_chain_composes_naka_capture_chroma_and_capture_tone():
     images = _images()
     out = Enhancer(EnhanceConfig(correction="none", exposure="none", use_cache=False)).enhance_images(images)
     for got, image in zip(out, images):
         low = image.float() / 255
-        torch.testing.assert_close(got, capture_chroma(naka_enhance(low), low), atol=1e-4, rtol=0)
+        torch.testing.assert_close(got, capture_tone(capture_chroma(naka_enhance(low), low), low), atol=1e-4, rtol=0)
 
 
 def test_stages_report_their_own_time():

@@ -1,7 +1,7 @@
 """The enhancement as a chain of stages, each a dataclass whose fields are everything that changes its output.
 
 :class:`naka_gs_plugin.enhance.pipeline.Enhancer` runs the chain: per view the Naka response, the
-correction network and capture chroma, then the cache, then the stages that look at the whole
+correction network, capture chroma and capture tone, then the cache, then the stages that look at the whole
 scene's enhanced views (exposure). A :class:`ViewStage` runs per view before the cache, a
 :class:`SceneStage` on the cached views of the whole scene. The cache key is :meth:`Stage.key` of every cached
 stage, derived from the stage's fields, so an option a stage reads is in the key by construction;
@@ -27,6 +27,8 @@ from naka_gs_plugin.enhance.chroma import capture_chroma
 from naka_gs_plugin.enhance.correction import CorrectionRunner, file_digest, load_correction
 from naka_gs_plugin.enhance.exposure import apply_gain, lift_gain
 from naka_gs_plugin.enhance.naka import linear_stretch, naka_rushton, stretch_stats
+from naka_gs_plugin.enhance.tone import DEFAULT_BLUR as TONE_BLUR
+from naka_gs_plugin.enhance.tone import capture_tone
 
 SIGMA_FLOOR = 1e-3
 """Lower bound of ``sigma auto`` (an all-black scene must not divide by zero)."""
@@ -191,6 +193,25 @@ class CaptureChromaStage(ViewStage):
 
 
 @dataclass
+class CaptureToneStage(ViewStage):
+    """No pixel brighter, against the capture, than the view's median enhancement gain
+    (:mod:`naka_gs_plugin.enhance.tone`)."""
+
+    name: ClassVar[str] = "tone"
+    blur: float = TONE_BLUR
+
+    @classmethod
+    def build(cls, config: Any, enhancer: Any) -> Optional["CaptureToneStage"]:
+        return cls() if config.method == "naka" and config.tone == "capture" else None
+
+    def apply(self, image: Float[Tensor, "H W 3"], low: Float[Tensor, "H W 3"]) -> Float[Tensor, "H W 3"]:
+        return capture_tone(image, low, self.blur)
+
+    def describe(self) -> str:
+        return f"capture tone (blur {self.blur:g} px)"
+
+
+@dataclass
 class ExposureStage(SceneStage):
     """One linear-light gain shared by every view lifts the scene's metered level to ``target`` when it is
     below it (:mod:`naka_gs_plugin.enhance.exposure`); after the cache, as it needs the whole scene."""
@@ -210,6 +231,6 @@ class ExposureStage(SceneStage):
         return images if self.value == 1.0 else apply_gain(images, self.value)
 
 
-CHAIN: Tuple[Type[Stage], ...] = (NakaStage, CorrectionStage, CaptureChromaStage, ExposureStage)
+CHAIN: Tuple[Type[Stage], ...] = (NakaStage, CorrectionStage, CaptureChromaStage, CaptureToneStage, ExposureStage)
 """The enhancement, in order: each stage's :meth:`Stage.build` decides from the config whether it runs. A new
 stage is a class here (with ``build``) plus the config field it reads."""

@@ -1,0 +1,63 @@
+"""Capture tone: no pixel of the enhanced view brighter, against its capture, than the view's typical gain.
+
+A longer exposure scales the scene's linear light by one factor, so a normal-light photo's linear brightness
+is the dark capture's times one gain wherever the capture recorded the scene: above the noise floor, below the
+tone curve's shoulder. The enhancement does not keep that ratio: the Naka-Rushton response is concave and the
+correction network, trained on LOL and LOM targets, lifts black, so the capture's shadows get a larger gain
+than its mid-tones: lifted, grey-green shadows and flat contrast, worst on captures far darker than the
+network's training pairs (RealX3D), where most of the view is shadow (docs/real-scenes.md, capture tone).
+
+Here the view's gain is the median, over the pixels the capture records reliably (:data:`RELIABLE_CODES`), of
+the enhanced over the capture's linear brightness (the mean of the channels); every pixel whose enhanced
+brightness exceeds that gain times the capture's has its linear RGB scaled down to it (its colour kept), no
+pixel is scaled up: highlights the Naka response compresses, or a capture too dark to meter, stay as they are.
+The capture is low-pass filtered first, as for capture chroma, because a dark capture's brightness is noise at
+the pixel scale; less, as the eye (and JPEG) resolves brightness more finely than colour.
+
+Images are sRGB-encoded in [0, 1], channel-last ``[H, W, 3]``; the ratio and the scaling are in linear RGB.
+"""
+
+from __future__ import annotations
+
+from jaxtyping import Float
+from torch import Tensor
+
+DEFAULT_BLUR = 1.5
+"""Standard deviation, in pixels, of the Gaussian low-pass on the capture before its brightness is taken."""
+RELIABLE_CODES = (2.0, 16.0)
+"""8-bit sRGB code range of the filtered capture's brightness over which the view's gain is metered: above a
+dark JPEG's floor (where noise is clipped at code 0, which lifts the mean), below its tone curve's shoulder."""
+MIN_RELIABLE = 256
+"""Fewer reliable pixels than this (a capture all black or all bright): the view is left as it is."""
+
+
+def _decode(code: float) -> float:
+    """The sRGB transfer function's inverse for one 8-bit code (a scalar; kornia's works on images)."""
+    v = code / 255.0
+    return v / 12.92 if v <= 0.04045 else ((v + 0.055) / 1.055) ** 2.4
+
+
+def capture_tone(
+    enhanced: Float[Tensor, "H W 3"], low: Float[Tensor, "H W 3"], blur: float = DEFAULT_BLUR
+) -> Float[Tensor, "H W 3"]:
+    """``enhanced`` with every pixel's linear RGB scaled down to at most the view's median gain over ``low``
+    (the capture it came from, same size, filtered by a Gaussian of ``blur`` pixels); sRGB in [0, 1] in and out."""
+    import kornia  # not at module level: every ns-* command imports the method config at start-up
+
+    if enhanced.shape != low.shape:
+        raise ValueError(f"capture tone needs images of one size, got {tuple(enhanced.shape)} and {tuple(low.shape)}")
+    if not blur > 0:
+        raise ValueError(f"capture tone blur must be > 0 pixels, got {blur!r}")
+    kernel = max(3, int(3 * blur) | 1)
+    capture = kornia.color.rgb_to_linear_rgb(low.permute(2, 0, 1)[None].clamp(0.0, 1.0))
+    capture = kornia.filters.gaussian_blur2d(capture, (kernel, kernel), (blur, blur), border_type="replicate")
+    capture = capture[0].mean(dim=0)
+    linear = kornia.color.rgb_to_linear_rgb(enhanced.permute(2, 0, 1).clamp(0.0, 1.0))
+    brightness = linear.mean(dim=0)
+    lo, hi = (_decode(code) for code in RELIABLE_CODES)
+    reliable = (capture >= lo) & (capture <= hi) & (brightness > 0)
+    if int(reliable.sum()) < MIN_RELIABLE:
+        return enhanced
+    gain = (brightness[reliable] / capture[reliable]).median()
+    scale = (gain * capture / brightness.clamp(min=1e-12)).clamp(max=1.0)
+    return kornia.color.linear_rgb_to_rgb(linear * scale).permute(1, 2, 0)

@@ -1,0 +1,77 @@
+"""Capture tone (naka_gs_plugin.enhance.tone) and its place in the enhancement chain."""
+
+import kornia
+import pytest
+import torch
+from torch.testing import assert_close
+
+from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
+from naka_gs_plugin.enhance.tone import capture_tone
+
+
+def _srgb(linear: torch.Tensor) -> torch.Tensor:
+    return kornia.color.linear_rgb_to_rgb(linear.permute(2, 0, 1)).permute(1, 2, 0)
+
+
+def _linear(image: torch.Tensor) -> torch.Tensor:
+    return kornia.color.rgb_to_linear_rgb(image.permute(2, 0, 1)).permute(1, 2, 0)
+
+
+def _scene() -> torch.Tensor:
+    """A 64x96 linear-light scene: a horizontal brightness ramp from deep shadow (0.004) to 0.5, warm-tinted."""
+    ramp = torch.logspace(-2.4, -0.3, 96).expand(64, 96)
+    return ramp[..., None] * torch.tensor([1.2, 1.0, 0.7])
+
+
+def test_lifted_shadows_come_down_to_the_views_median_gain_with_their_colour():
+    truth = _scene()
+    low = _srgb(truth / 40)  # a dark capture: every channel scaled alike in linear light
+    lifted = truth**0.6 * torch.tensor([1.2, 1.0, 0.7]) ** 0.4  # a concave tone: the shadows gain most
+    enhanced = _srgb(lifted.clamp(0, 1))
+    out = capture_tone(enhanced, low, blur=1.0)
+    before, after = _linear(enhanced), _linear(out)
+    capture = _linear(low).mean(-1)
+    gain_in, gain_out = before.mean(-1) / capture, after.mean(-1) / capture
+    inner = (slice(4, 60), slice(4, 92))  # away from the borders the blur mixes
+    # the capture's reliable range (2-16 codes) holds the middle columns: their median gain is the ceiling
+    reliable = (low.mean(-1) * 255 >= 2) & (low.mean(-1) * 255 <= 16)
+    ceiling = gain_in[reliable].median()
+    assert gain_out[inner].max() <= ceiling * 1.03
+    assert (after <= before + 1e-4).all()  # never brighter
+    shadows, kept = gain_in[inner] > ceiling * 1.03, gain_in[inner] < ceiling * 0.97
+    assert shadows.float().mean() > 0.2 and kept.float().mean() > 0.15
+    assert_close(gain_out[inner][shadows], torch.full_like(gain_out[inner][shadows], float(ceiling)), rtol=0.03, atol=0)
+    assert_close(after[inner][kept], before[inner][kept], atol=2e-3, rtol=0)
+    chroma = after[inner] / after[inner].mean(-1, keepdim=True)
+    assert_close(chroma, before[inner] / before[inner].mean(-1, keepdim=True), atol=2e-3, rtol=0)
+
+
+def test_a_capture_with_nothing_to_meter_leaves_the_view_alone():
+    enhanced = _srgb(_scene())
+    assert torch.equal(capture_tone(enhanced, torch.zeros_like(enhanced)), enhanced)  # all black
+    assert torch.equal(capture_tone(enhanced, torch.full_like(enhanced, 0.8)), enhanced)  # all bright
+
+
+def test_sizes_and_blur_are_checked():
+    image = _srgb(_scene())
+    with pytest.raises(ValueError, match="one size"):
+        capture_tone(image, image[:10])
+    with pytest.raises(ValueError, match="blur"):
+        capture_tone(image, image, blur=0.0)
+
+
+def test_tone_is_on_by_default_and_network_leaves_the_stage_out():
+    default = Enhancer(EnhanceConfig(correction="none"))
+    network = Enhancer(EnhanceConfig(correction="none", tone="network"))
+    assert [s.name for s in default.view_stages] == ["naka", "chroma", "tone"]
+    assert [s.name for s in network.view_stages] == ["naka", "chroma"]
+    assert default.key() != network.key()
+
+
+def test_runs_saved_before_capture_tone_keep_the_networks_tone():
+    state = dict(EnhanceConfig().__dict__)
+    del state["tone"]
+    config = EnhanceConfig.__new__(EnhanceConfig)
+    config.__setstate__(state)
+    assert config.tone == "network"
+    assert EnhanceConfig().tone == "capture"
