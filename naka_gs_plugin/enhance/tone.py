@@ -7,12 +7,13 @@ correction network, trained on LOL and LOM targets, lifts black, so the capture'
 than its mid-tones: lifted, grey-green shadows and flat contrast, worst on captures far darker than the
 network's training pairs (RealX3D), where most of the view is shadow (docs/real-scenes.md, capture tone).
 
-Here the view's gain is the median, over the pixels the capture records reliably (:data:`RELIABLE_CODES`), of
-the enhanced over the capture's linear brightness (the mean of the channels); every pixel whose enhanced
-brightness exceeds that gain times the capture's has its linear RGB scaled down to it (its colour kept), no
-pixel is scaled up: highlights the Naka response compresses, or a capture too dark to meter, stay as they are.
-The capture is low-pass filtered first, as for capture chroma, because a dark capture's brightness is noise at
-the pixel scale; less, as the eye (and JPEG) resolves brightness more finely than colour.
+Here both brightnesses (the mean of the channels in linear light) are low-pass filtered, as a dark capture's
+brightness is noise at the pixel scale, and the view's gain is the median of their ratio over the pixels the
+capture records reliably (:data:`RELIABLE_CODES`). Wherever the enhanced view's local brightness exceeds that
+gain times the capture's, its linear RGB is scaled down by the ratio (colour kept); nothing is scaled up:
+highlights the Naka response compresses, or a capture too dark to meter, stay as they are. The scale is a ratio
+of local means, so it is smooth: the tone follows the capture, the detail stays the enhancement's (scaling each
+pixel to the filtered capture instead would replace the enhanced detail by the capture's blur).
 
 Images are sRGB-encoded in [0, 1], channel-last ``[H, W, 3]``; the ratio and the scaling are in linear RGB.
 """
@@ -23,7 +24,7 @@ from jaxtyping import Float
 from torch import Tensor
 
 DEFAULT_BLUR = 1.5
-"""Standard deviation, in pixels, of the Gaussian low-pass on the capture before its brightness is taken."""
+"""Standard deviation, in pixels, of the Gaussian low-pass on both brightnesses before their ratio is taken."""
 RELIABLE_CODES = (2.0, 16.0)
 """8-bit sRGB code range of the filtered capture's brightness over which the view's gain is metered: above a
 dark JPEG's floor (where noise is clipped at code 0, which lifts the mean), below its tone curve's shoulder."""
@@ -40,8 +41,8 @@ def _decode(code: float) -> float:
 def capture_tone(
     enhanced: Float[Tensor, "H W 3"], low: Float[Tensor, "H W 3"], blur: float = DEFAULT_BLUR
 ) -> Float[Tensor, "H W 3"]:
-    """``enhanced`` with every pixel's linear RGB scaled down to at most the view's median gain over ``low``
-    (the capture it came from, same size, filtered by a Gaussian of ``blur`` pixels); sRGB in [0, 1] in and out."""
+    """``enhanced`` scaled down in linear light wherever its local brightness (a Gaussian of ``blur`` pixels) exceeds
+    the view's median gain over that of ``low`` (the capture it came from, same size); sRGB in [0, 1] in and out."""
     import kornia  # not at module level: every ns-* command imports the method config at start-up
 
     if enhanced.shape != low.shape:
@@ -49,11 +50,14 @@ def capture_tone(
     if not blur > 0:
         raise ValueError(f"capture tone blur must be > 0 pixels, got {blur!r}")
     kernel = max(3, int(3 * blur) | 1)
-    capture = kornia.color.rgb_to_linear_rgb(low.permute(2, 0, 1)[None].clamp(0.0, 1.0))
-    capture = kornia.filters.gaussian_blur2d(capture, (kernel, kernel), (blur, blur), border_type="replicate")
-    capture = capture[0].mean(dim=0)
+
+    def local_brightness(linear_rgb: Float[Tensor, "3 H W"]) -> Float[Tensor, "H W"]:
+        mean = linear_rgb.mean(dim=0)[None, None]
+        return kornia.filters.gaussian_blur2d(mean, (kernel, kernel), (blur, blur), border_type="replicate")[0, 0]
+
+    capture = local_brightness(kornia.color.rgb_to_linear_rgb(low.permute(2, 0, 1).clamp(0.0, 1.0)))
     linear = kornia.color.rgb_to_linear_rgb(enhanced.permute(2, 0, 1).clamp(0.0, 1.0))
-    brightness = linear.mean(dim=0)
+    brightness = local_brightness(linear)
     lo, hi = (_decode(code) for code in RELIABLE_CODES)
     reliable = (capture >= lo) & (capture <= hi) & (brightness > 0)
     if int(reliable.sum()) < MIN_RELIABLE:
