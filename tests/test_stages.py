@@ -38,14 +38,10 @@ def _key(**options):
 
 def test_the_config_builds_the_chain_in_order(tmp_path):
     ckpt = save_correction(ChromaGuided(SMALL), tmp_path / "net.pt")
-    enhancer = Enhancer(EnhanceConfig(correction=str(ckpt), correction_mode="exact"))
+    enhancer = Enhancer(EnhanceConfig(correction=str(ckpt), correction_mode="exact", tone="capture"))
     assert [type(s) for s in enhancer.view_stages] == [NakaStage, CorrectionStage, CaptureChromaStage, CaptureToneStage]
     assert [type(s) for s in enhancer.scene_stages] == [ExposureStage]
-    assert [type(s) for s in Enhancer(EnhanceConfig(correction="none")).view_stages] == [
-        NakaStage,
-        CaptureChromaStage,
-        CaptureToneStage,
-    ]
+    assert [type(s) for s in Enhancer(EnhanceConfig(correction="none")).view_stages] == [NakaStage, CaptureChromaStage]
     assert Enhancer(EnhanceConfig(exposure="none")).scene_stages == []
     assert Enhancer(EnhanceConfig(method="none")).view_stages == []
 
@@ -73,7 +69,7 @@ def test_a_new_stage_is_one_class_plus_one_config_field(monkeypatch):
     monkeypatch.setattr(pipeline_mod, "CHAIN", stages_mod.CHAIN)
 
     def run(tint):
-        enhancer = Enhancer(TintConfig(correction="none", exposure="none", use_cache=False, tint=tint))
+        enhancer = Enhancer(TintConfig(correction="none", exposure="none", tone="capture", use_cache=False, tint=tint))
         return enhancer, enhancer.enhance_images(_images())
 
     plain, darker = run(1.0), run(0.5)
@@ -85,7 +81,7 @@ def test_a_new_stage_is_one_class_plus_one_config_field(monkeypatch):
 
 @pytest.mark.parametrize(
     "option, value",
-    [("sigma", 0.07), ("sigma", "auto"), ("n", 0.8), ("chroma_blur", 5.0), ("tone", "network")],
+    [("sigma", 0.07), ("sigma", "auto"), ("n", 0.8), ("chroma_blur", 5.0), ("tone", "capture")],
 )
 def test_every_option_that_changes_the_cached_views_changes_the_key(option, value):
     assert _key(**{option: value}) != _key()
@@ -109,7 +105,9 @@ def test_correction_is_keyed_by_weights_content_and_mode_not_path(tmp_path):
 
 def test_the_chain_composes_naka_capture_chroma_and_capture_tone():
     images = _images()
-    out = Enhancer(EnhanceConfig(correction="none", exposure="none", use_cache=False)).enhance_images(images)
+    out = Enhancer(EnhanceConfig(correction="none", exposure="none", tone="capture", use_cache=False)).enhance_images(
+        images
+    )
     for got, image in zip(out, images):
         low = image.float() / 255
         torch.testing.assert_close(got, capture_tone(capture_chroma(naka_enhance(low), low), low), atol=1e-4, rtol=0)

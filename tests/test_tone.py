@@ -60,21 +60,20 @@ def test_sizes_and_blur_are_checked():
         capture_tone(image, image, blur=0.0)
 
 
-def test_tone_is_on_by_default_and_network_leaves_the_stage_out():
+def test_tone_capture_adds_the_stage_after_capture_chroma():
     default = Enhancer(EnhanceConfig(correction="none"))
-    network = Enhancer(EnhanceConfig(correction="none", tone="network"))
-    assert [s.name for s in default.view_stages] == ["naka", "chroma", "tone"]
-    assert [s.name for s in network.view_stages] == ["naka", "chroma"]
-    assert default.key() != network.key()
+    capture = Enhancer(EnhanceConfig(correction="none", tone="capture"))
+    assert [s.name for s in default.view_stages] == ["naka", "chroma"]
+    assert [s.name for s in capture.view_stages] == ["naka", "chroma", "tone"]
+    assert default.key() != capture.key()
 
 
-def test_runs_saved_before_capture_tone_keep_the_networks_tone():
+def test_runs_saved_before_capture_tone_load_with_the_networks_tone():
     state = dict(EnhanceConfig().__dict__)
     del state["tone"]
     config = EnhanceConfig.__new__(EnhanceConfig)
     config.__setstate__(state)
     assert config.tone == "network"
-    assert EnhanceConfig().tone == "capture"
 
 
 def test_the_scale_is_smooth_so_the_enhanced_detail_is_kept():

@@ -1,7 +1,7 @@
 """The enhancement applied to training images: a chain of stages (:mod:`naka_gs_plugin.enhance.stages`).
 
 One :class:`Enhancer` turns a scene's low-light training images into enhanced ones, once, with a
-rich progress bar: per view the Naka-Rushton response, the correction network, capture chroma and tone,
+rich progress bar: per view the Naka-Rushton response, the correction network, capture chroma (and tone),
 kept in an on-disk cache keyed by image content plus every cached stage's :meth:`~Stage.key`, so a
 second run (or ``ns-eval``/``ns-viewer`` after training) does not recompute anything; then the
 scene's exposure. Eval images never pass through here.
@@ -80,7 +80,7 @@ class EnhanceConfig(InstantiateConfig):
     _target: Type = field(default_factory=lambda: Enhancer)
     method: Literal["naka", "none"] = "naka"
     """``naka``: Naka-Rushton response + min-max stretch, the correction network, the capture's
-    chromaticity and tone, and the scene exposure; ``none``: train on the raw images (baseline)."""
+    chromaticity (and tone, with ``tone capture``), and the scene exposure; ``none``: train on the raw images (baseline)."""
     sigma: Union[float, Literal["auto"]] = 0.05
     """Naka-Rushton semi-saturation constant, in [0, 1] sRGB image units (reference: 0.05), or ``auto``:
     the mean sRGB value of the scene's training views (all pixels and channels), so that the scene's
@@ -96,10 +96,11 @@ class EnhanceConfig(InstantiateConfig):
     chroma_blur: tyro.conf.Suppress[float] = DEFAULT_BLUR
     """Gaussian low-pass, in pixels, on the capture before its chromaticity is taken
     (:mod:`naka_gs_plugin.enhance.chroma`): a dark capture's colour is noise at the pixel scale."""
-    tone: Literal["capture", "network"] = "capture"
-    """``capture``: no pixel brighter, against the dark capture in linear light, than the view's median
-    enhancement gain (:mod:`naka_gs_plugin.enhance.tone`: the shadows as dark, relative to the mid-tones, as the
-    capture recorded them); ``network``: the tone of the Naka response and the correction network as they come."""
+    tone: Literal["capture", "network"] = "network"
+    """``network``: the tone of the Naka response and the correction network as they come; ``capture``: no part
+    of a view brighter, against the dark capture in linear light, than the view's median enhancement gain
+    (:mod:`naka_gs_plugin.enhance.tone`: the shadows as dark, relative to the mid-tones, as the capture recorded
+    them), for captures far darker than LOL and LOM (RealX3D), whose black the network lifts."""
     exposure: Union[float, Literal["none"]] = METERED_TARGET
     """Scene exposure after the correction network (:mod:`naka_gs_plugin.enhance.exposure`): when the
     enhanced views meter below this sRGB level (mean luminance in linear light, as a camera meters), one
@@ -114,8 +115,6 @@ class EnhanceConfig(InstantiateConfig):
     def __setstate__(self, state: dict) -> None:
         """A saved run's ``config.yml`` may name options retired since (:data:`RETIRED`): each one that asked
         for something other than what runs now is dropped with one warning."""
-        # A run saved before capture tone existed trained on the network's tone.
-        state.setdefault("tone", "network")
         if state.keys() & RETIRED.keys():  # saved before the retirement (a config saved since has none)
             for option, (now, why) in RETIRED.items():
                 asked = state.pop(option, LEGACY_DEFAULTS.get(option))
