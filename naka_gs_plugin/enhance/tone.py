@@ -20,6 +20,7 @@ Images are sRGB-encoded in [0, 1], channel-last ``[H, W, 3]``; the ratio and the
 
 from __future__ import annotations
 
+import torch
 from jaxtyping import Float
 from torch import Tensor
 
@@ -30,12 +31,6 @@ RELIABLE_CODES = (2.0, 16.0)
 dark JPEG's floor (where noise is clipped at code 0, which lifts the mean), below its tone curve's shoulder."""
 MIN_RELIABLE = 256
 """Fewer reliable pixels than this (a capture all black or all bright): the view is left as it is."""
-
-
-def _decode(code: float) -> float:
-    """The sRGB transfer function's inverse for one 8-bit code (a scalar; kornia's works on images)."""
-    v = code / 255.0
-    return v / 12.92 if v <= 0.04045 else ((v + 0.055) / 1.055) ** 2.4
 
 
 def capture_tone(
@@ -58,7 +53,8 @@ def capture_tone(
     capture = local_brightness(kornia.color.rgb_to_linear_rgb(low.permute(2, 0, 1).clamp(0.0, 1.0)))
     linear = kornia.color.rgb_to_linear_rgb(enhanced.permute(2, 0, 1).clamp(0.0, 1.0))
     brightness = local_brightness(linear)
-    lo, hi = (_decode(code) for code in RELIABLE_CODES)
+    codes = torch.tensor(RELIABLE_CODES).div(255.0).view(1, 2, 1).expand(3, 2, 1)
+    lo, hi = kornia.color.rgb_to_linear_rgb(codes)[0, :, 0].tolist()
     reliable = (capture >= lo) & (capture <= hi) & (brightness > 0)
     if int(reliable.sum()) < MIN_RELIABLE:
         return enhanced
