@@ -92,6 +92,12 @@ def test_options_applied_after_the_cache_leave_the_key_alone(option, value):
     assert _key(**{option: value}) == _key()
 
 
+def test_a_stage_whose_maths_changed_without_a_field_change_is_keyed_anew(monkeypatch):
+    before = _key(tone="capture")
+    monkeypatch.setattr(CaptureToneStage, "version", CaptureToneStage.version + 1)
+    assert _key(tone="capture") != before
+
+
 def test_correction_is_keyed_by_weights_content_and_mode_not_path(tmp_path):
     ckpt = save_correction(ChromaGuided(SMALL), tmp_path / "net.pt")
     copy = tmp_path / "elsewhere" / "net.pt"

@@ -51,7 +51,8 @@ from naka_gs_plugin.enhance.stages import (
 from naka_gs_plugin.progress import StageProgress
 
 CACHE_VERSION = 1
-"""Bump when the enhancement maths change, so stale cache entries are never read."""
+"""Bump when the cache's own format changes (a stage's maths: that stage's ``version``), so stale entries are never
+read."""
 
 
 RETIRED: Dict[str, Tuple[Any, str]] = {

@@ -6,7 +6,8 @@ scene's enhanced views (exposure). A :class:`ViewStage` runs per view before the
 :class:`SceneStage` on the cached views of the whole scene. The cache key is :meth:`Stage.key` of every cached
 stage, derived from the stage's fields, so an option a stage reads is in the key by construction;
 only a field declared with :func:`runtime` is left out: one that does not change the output (a
-device, a path whose content is keyed instead, state computed from the scene).
+device, a path whose content is keyed instead, state computed from the scene). A change of a stage's maths
+that no field expresses bumps its :attr:`Stage.version`, which the key carries too.
 
 A stage's ``apply`` takes and returns sRGB [0, 1] ``float32`` images, channel-last ``[H, W, 3]``.
 """
@@ -60,6 +61,9 @@ class Stage:
     """One step of the enhancement; subclasses are dataclasses and set :attr:`name`."""
 
     name: ClassVar[str]
+    version: ClassVar[int] = 1
+    """Bump when this stage's output changes for the same fields (its maths), so no cached view of the old maths
+    is read again."""
 
     @classmethod
     @abc.abstractmethod
@@ -68,9 +72,10 @@ class Stage:
         when the config leaves it out (``enhancer``: the resolved weights, inference mode and device)."""
 
     def key(self) -> Dict[str, Any]:
-        """Everything that changes this stage's output: its name and every field not marked :func:`runtime`."""
+        """Everything that changes this stage's output: its name, version and every field not marked :func:`runtime`."""
         fields = dataclasses.fields(self)
-        return {"stage": self.name, **{f.name: getattr(self, f.name) for f in fields if f.metadata.get("key", True)}}
+        values = {f.name: getattr(self, f.name) for f in fields if f.metadata.get("key", True)}
+        return {"stage": self.name, "version": self.version, **values}
 
     def describe(self) -> str:
         """A few words for the progress bar."""
