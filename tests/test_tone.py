@@ -23,7 +23,7 @@ def _scene() -> torch.Tensor:
     return ramp[..., None] * torch.tensor([1.2, 1.0, 0.7])
 
 
-def test_lifted_shadows_come_down_to_the_views_median_gain_with_their_colour():
+def test_lifted_shadows_below_the_captures_floor_come_down_to_the_views_median_gain_with_their_colour():
     truth = _scene()
     low = _srgb(truth / 40)  # a dark capture: every channel scaled alike in linear light
     lifted = truth**0.6 * torch.tensor([1.2, 1.0, 0.7]) ** 0.4  # a concave tone: the shadows gain most
@@ -34,16 +34,26 @@ def test_lifted_shadows_come_down_to_the_views_median_gain_with_their_colour():
     gain_in, gain_out = before.mean(-1) / capture, after.mean(-1) / capture
     inner = (slice(4, 60), slice(4, 92))  # away from the borders the blur mixes
     # the capture's reliable range (2-16 codes) holds the middle columns: their median gain is the ceiling
-    reliable = (low.mean(-1) * 255 >= 2) & (low.mean(-1) * 255 <= 16)
-    ceiling = gain_in[reliable].median()
-    assert gain_out[inner].max() <= ceiling * 1.03
+    codes = low.mean(-1) * 255
+    ceiling = gain_in[(codes >= 2) & (codes <= 16)].median()
     assert (after <= before + 1e-4).all()  # never brighter
-    shadows, kept = gain_in[inner] > ceiling * 1.03, gain_in[inner] < ceiling * 0.97
-    assert shadows.float().mean() > 0.2 and kept.float().mean() > 0.15
-    assert_close(gain_out[inner][shadows], torch.full_like(gain_out[inner][shadows], float(ceiling)), rtol=0.03, atol=0)
-    assert_close(after[inner][kept], before[inner][kept], atol=2e-3, rtol=0)
+    floor, measured = codes[inner] < 1.8, codes[inner] > 4.3  # under the floor; above the fade (2-4 codes)
+    lifted_above = measured & (gain_in[inner] > ceiling * 1.02)  # mid-tones the enhancement lifted, kept so
+    assert floor.float().mean() > 0.1 and lifted_above.float().mean() > 0.02
+    assert (gain_in[inner][floor] > ceiling * 1.05).all()
+    assert_close(gain_out[inner][floor], torch.full_like(gain_out[inner][floor], float(ceiling)), rtol=0.03, atol=0)
+    assert_close(after[inner][measured], before[inner][measured], atol=2e-5, rtol=0)
     chroma = after[inner] / after[inner].mean(-1, keepdim=True)
     assert_close(chroma, before[inner] / before[inner].mean(-1, keepdim=True), atol=2e-3, rtol=0)
+
+
+def test_a_capture_above_its_floor_keeps_the_enhancements_tone_which_the_ceiling_everywhere_would_flatten():
+    truth = _scene()
+    low = _srgb(truth / 2)  # a bright capture (LOM-like): every pixel above 4 codes
+    assert (low.mean(-1) * 255).min() > 4.3
+    enhanced = _srgb((truth**0.6).clamp(0, 1))
+    assert_close(capture_tone(enhanced, low), enhanced, atol=2e-5, rtol=0)
+    assert (capture_tone(enhanced, low, floor=None) < enhanced - 0.015).any()
 
 
 def test_a_capture_with_nothing_to_meter_leaves_the_view_alone():
@@ -58,6 +68,8 @@ def test_sizes_and_blur_are_checked():
         capture_tone(image, image[:10])
     with pytest.raises(ValueError, match="blur"):
         capture_tone(image, image, blur=0.0)
+    with pytest.raises(ValueError, match="floor"):
+        capture_tone(image, image, floor=(4.0, 2.0))
 
 
 def test_tone_capture_adds_the_stage_after_capture_chroma():

@@ -29,6 +29,7 @@ from naka_gs_plugin.enhance.correction import CorrectionRunner, file_digest, loa
 from naka_gs_plugin.enhance.exposure import apply_gain, lift_gain
 from naka_gs_plugin.enhance.naka import linear_stretch, naka_rushton, stretch_stats
 from naka_gs_plugin.enhance.tone import DEFAULT_BLUR as TONE_BLUR
+from naka_gs_plugin.enhance.tone import FLOOR_CODES as TONE_FLOOR
 from naka_gs_plugin.enhance.tone import capture_tone
 
 SIGMA_FLOOR = 1e-3
@@ -204,16 +205,17 @@ class CaptureToneStage(ViewStage):
 
     name: ClassVar[str] = "tone"
     blur: float = TONE_BLUR
+    floor: Tuple[float, float] = TONE_FLOOR
 
     @classmethod
     def build(cls, config: Any, enhancer: Any) -> Optional["CaptureToneStage"]:
         return cls() if config.method == "naka" and config.tone == "capture" else None
 
     def apply(self, image: Float[Tensor, "H W 3"], low: Float[Tensor, "H W 3"]) -> Float[Tensor, "H W 3"]:
-        return capture_tone(image, low, self.blur)
+        return capture_tone(image, low, self.blur, self.floor)
 
     def describe(self) -> str:
-        return f"capture tone (blur {self.blur:g} px)"
+        return f"capture tone (blur {self.blur:g} px, below {self.floor[0]:g}-{self.floor[1]:g} codes)"
 
 
 @dataclass

@@ -15,10 +15,17 @@ highlights the Naka response compresses, or a capture too dark to meter, stay as
 of local means, so it is smooth: the tone follows the capture, the detail stays the enhancement's (scaling each
 pixel to the filtered capture instead would replace the enhanced detail by the capture's blur).
 
+The ceiling holds only below the capture's floor (:data:`FLOOR_CODES`), where the capture recorded no signal and
+every lift is the enhancement's invention; where the capture measured the scene, the enhancement's tone is a
+tone curve like a normal photo's (LOM's photos are not one gain over their captures), and a ceiling there costs
+bright scenes their mid-tones (docs/real-scenes.md, capture tone).
+
 Images are sRGB-encoded in [0, 1], channel-last ``[H, W, 3]``; the ratio and the scaling are in linear RGB.
 """
 
 from __future__ import annotations
+
+from typing import Optional, Tuple
 
 import torch
 from jaxtyping import Float
@@ -29,22 +36,37 @@ DEFAULT_BLUR = 1.5
 RELIABLE_CODES = (2.0, 16.0)
 """8-bit sRGB code range of the filtered capture's brightness over which the view's gain is metered: above a
 dark JPEG's floor (where noise is clipped at code 0, which lifts the mean), below its tone curve's shoulder."""
+FLOOR_CODES = (2.0, 4.0)
+"""8-bit code range of the filtered capture's brightness over which the ceiling fades: whole below the first (the
+floor of :data:`RELIABLE_CODES`), none above the second."""
 MIN_RELIABLE = 256
 """Fewer reliable pixels than this (a capture all black or all bright): the view is left as it is."""
 
 
 def capture_tone(
-    enhanced: Float[Tensor, "H W 3"], low: Float[Tensor, "H W 3"], blur: float = DEFAULT_BLUR
+    enhanced: Float[Tensor, "H W 3"],
+    low: Float[Tensor, "H W 3"],
+    blur: float = DEFAULT_BLUR,
+    floor: Optional[Tuple[float, float]] = FLOOR_CODES,
 ) -> Float[Tensor, "H W 3"]:
     """``enhanced`` scaled down in linear light wherever its local brightness (a Gaussian of ``blur`` pixels) exceeds
-    the view's median gain over that of ``low`` (the capture it came from, same size); sRGB in [0, 1] in and out."""
+    the view's median gain over that of ``low`` (the capture it came from, same size); sRGB in [0, 1] in and out.
+    ``floor`` (8-bit codes ``(whole, none)``, ``whole < none``): the ceiling only where the filtered capture is under
+    ``whole`` codes, fading out by ``none``; ``None``: everywhere."""
     import kornia  # not at module level: every ns-* command imports the method config at start-up
 
     if enhanced.shape != low.shape:
         raise ValueError(f"capture tone needs images of one size, got {tuple(enhanced.shape)} and {tuple(low.shape)}")
     if not blur > 0:
         raise ValueError(f"capture tone blur must be > 0 pixels, got {blur!r}")
+    if floor is not None and not 0 <= floor[0] < floor[1]:
+        raise ValueError(f"capture tone floor must be two codes 0 <= whole < none, got {floor!r}")
     kernel = max(3, int(3 * blur) | 1)
+
+    def decode(codes: Tuple[float, float]) -> Tuple[float, float]:
+        """Two 8-bit sRGB codes as linear light."""
+        srgb = torch.tensor(codes).div(255.0).view(1, 2, 1).expand(3, 2, 1)
+        return tuple(kornia.color.rgb_to_linear_rgb(srgb)[0, :, 0].tolist())
 
     def local_brightness(linear_rgb: Float[Tensor, "3 H W"]) -> Float[Tensor, "H W"]:
         mean = linear_rgb.mean(dim=0)[None, None]
@@ -53,11 +75,14 @@ def capture_tone(
     capture = local_brightness(kornia.color.rgb_to_linear_rgb(low.permute(2, 0, 1).clamp(0.0, 1.0)))
     linear = kornia.color.rgb_to_linear_rgb(enhanced.permute(2, 0, 1).clamp(0.0, 1.0))
     brightness = local_brightness(linear)
-    codes = torch.tensor(RELIABLE_CODES).div(255.0).view(1, 2, 1).expand(3, 2, 1)
-    lo, hi = kornia.color.rgb_to_linear_rgb(codes)[0, :, 0].tolist()
+    lo, hi = decode(RELIABLE_CODES)
     reliable = (capture >= lo) & (capture <= hi) & (brightness > 0)
     if int(reliable.sum()) < MIN_RELIABLE:
         return enhanced
     gain = (brightness[reliable] / capture[reliable]).median()
     scale = (gain * capture / brightness.clamp(min=1e-12)).clamp(max=1.0)
+    if floor is not None:
+        whole, none = decode(floor)
+        weight = ((none - capture) / (none - whole)).clamp(0.0, 1.0)
+        scale = 1.0 - weight * (1.0 - scale)
     return kornia.color.linear_rgb_to_rgb(linear * scale).permute(1, 2, 0)
