@@ -78,6 +78,7 @@ def test_cache_hit_on_second_run_and_miss_when_sigma_changes(toy_scene, monkeypa
         "naka_seconds": 0.0,
         "correction_seconds": 0.0,
         "chroma_seconds": 0.0,
+        "tone_seconds": 0.0,
         "exposure_gain": 1.0,
     }
     assert calls == [], "a cache hit must not recompute the response"

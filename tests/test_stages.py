@@ -38,10 +38,11 @@ def _key(**options):
 
 def test_the_config_builds_the_chain_in_order(tmp_path):
     ckpt = save_correction(ChromaGuided(SMALL), tmp_path / "net.pt")
-    enhancer = Enhancer(EnhanceConfig(correction=str(ckpt), correction_mode="exact", tone="capture"))
+    enhancer = Enhancer(EnhanceConfig(correction=str(ckpt), correction_mode="exact"))
     assert [type(s) for s in enhancer.view_stages] == [NakaStage, CorrectionStage, CaptureChromaStage, CaptureToneStage]
     assert [type(s) for s in enhancer.scene_stages] == [ExposureStage]
-    assert [type(s) for s in Enhancer(EnhanceConfig(correction="none")).view_stages] == [NakaStage, CaptureChromaStage]
+    plain = Enhancer(EnhanceConfig(correction="none", tone="network"))
+    assert [type(s) for s in plain.view_stages] == [NakaStage, CaptureChromaStage]
     assert Enhancer(EnhanceConfig(exposure="none")).scene_stages == []
     assert Enhancer(EnhanceConfig(method="none")).view_stages == []
 
@@ -81,7 +82,7 @@ def test_a_new_stage_is_one_class_plus_one_config_field(monkeypatch):
 
 @pytest.mark.parametrize(
     "option, value",
-    [("sigma", 0.07), ("sigma", "auto"), ("n", 0.8), ("chroma_blur", 5.0), ("tone", "capture")],
+    [("sigma", 0.07), ("sigma", "auto"), ("n", 0.8), ("chroma_blur", 5.0), ("tone", "network")],
 )
 def test_every_option_that_changes_the_cached_views_changes_the_key(option, value):
     assert _key(**{option: value}) != _key()

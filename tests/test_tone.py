@@ -72,12 +72,12 @@ def test_sizes_and_blur_are_checked():
         capture_tone(image, image, floor=(4.0, 2.0))
 
 
-def test_tone_capture_adds_the_stage_after_capture_chroma():
+def test_capture_tone_is_the_default_stage_after_capture_chroma():
     default = Enhancer(EnhanceConfig(correction="none"))
-    capture = Enhancer(EnhanceConfig(correction="none", tone="capture"))
-    assert [s.name for s in default.view_stages] == ["naka", "chroma"]
-    assert [s.name for s in capture.view_stages] == ["naka", "chroma", "tone"]
-    assert default.key() != capture.key()
+    network = Enhancer(EnhanceConfig(correction="none", tone="network"))
+    assert [s.name for s in default.view_stages] == ["naka", "chroma", "tone"]
+    assert [s.name for s in network.view_stages] == ["naka", "chroma"]
+    assert default.key() != network.key()
 
 
 def test_runs_saved_before_capture_tone_load_with_the_networks_tone():

@@ -97,11 +97,11 @@ class EnhanceConfig(InstantiateConfig):
     chroma_blur: tyro.conf.Suppress[float] = DEFAULT_BLUR
     """Gaussian low-pass, in pixels, on the capture before its chromaticity is taken
     (:mod:`naka_gs_plugin.enhance.chroma`): a dark capture's colour is noise at the pixel scale."""
-    tone: Literal["capture", "network"] = "network"
-    """``network``: the tone of the Naka response and the correction network as they come; ``capture``: no part
-    of a view brighter, against the dark capture in linear light, than the view's median enhancement gain
-    (:mod:`naka_gs_plugin.enhance.tone`: the shadows as dark, relative to the mid-tones, as the capture recorded
-    them), for captures far darker than LOL and LOM (RealX3D), whose black the network lifts."""
+    tone: Literal["capture", "network"] = "capture"
+    """``capture``: where the dark capture recorded no signal (under 2-4 codes), no part of a view brighter against
+    it, in linear light, than the view's median enhancement gain (:mod:`naka_gs_plugin.enhance.tone`: the network
+    lifts black, most on captures far darker than LOL and LOM, such as RealX3D); ``network``: the tone of the Naka
+    response and the correction network as they come."""
     exposure: Union[float, Literal["none"]] = METERED_TARGET
     """Scene exposure after the correction network (:mod:`naka_gs_plugin.enhance.exposure`): when the
     enhanced views meter below this sRGB level (mean luminance in linear light, as a camera meters), one
@@ -116,6 +116,7 @@ class EnhanceConfig(InstantiateConfig):
     def __setstate__(self, state: dict) -> None:
         """A saved run's ``config.yml`` may name options retired since (:data:`RETIRED`): each one that asked
         for something other than what runs now is dropped with one warning."""
+        state.setdefault("tone", "network")  # saved before capture tone: the network's tone ran
         if state.keys() & RETIRED.keys():  # saved before the retirement (a config saved since has none)
             for option, (now, why) in RETIRED.items():
                 asked = state.pop(option, LEGACY_DEFAULTS.get(option))
