@@ -1,7 +1,7 @@
 """The enhancement applied to training images: a chain of stages (:mod:`naka_gs_plugin.enhance.stages`).
 
 One :class:`Enhancer` turns a scene's low-light training images into enhanced ones, once, with a
-rich progress bar: per view the Naka-Rushton response, the correction network, capture chroma (and tone),
+rich progress bar: per view the Naka-Rushton response, the correction network, capture chroma and tone,
 kept in an on-disk cache keyed by image content plus every cached stage's :meth:`~Stage.key`, so a
 second run (or ``ns-eval``/``ns-viewer`` after training) does not recompute anything; then the
 scene's exposure. Eval images never pass through here.
@@ -64,8 +64,9 @@ RETIRED: Dict[str, Tuple[Any, str]] = {
 }
 """Options removed from :class:`EnhanceConfig`: the value that behaves as today, and what runs instead
 (each measurement: docs/real-scenes.md, Levers)."""
-LEGACY_DEFAULTS = {"chroma": "network", "exposure_metering": "mean", "exposure_curve": "power"}
-"""What runs saved before an option existed did (their ``config.yml`` lacks the key)."""
+LEGACY_DEFAULTS = {"chroma": "network", "exposure_metering": "mean", "exposure_curve": "power", "tone": "network"}
+"""What runs saved before an option existed did (their ``config.yml`` lacks the key): a live option loads with it,
+a retired one is checked against what runs now."""
 CORRECTION_OPTION = "--pipeline.datamanager.enhance.correction"
 
 
@@ -81,7 +82,7 @@ class EnhanceConfig(InstantiateConfig):
     _target: Type = field(default_factory=lambda: Enhancer)
     method: Literal["naka", "none"] = "naka"
     """``naka``: Naka-Rushton response + min-max stretch, the correction network, the capture's
-    chromaticity (and tone, with ``tone capture``), and the scene exposure; ``none``: train on the raw images (baseline)."""
+    chromaticity and tone, and the scene exposure; ``none``: train on the raw images (baseline)."""
     sigma: Union[float, Literal["auto"]] = 0.05
     """Naka-Rushton semi-saturation constant, in [0, 1] sRGB image units (reference: 0.05), or ``auto``:
     the mean sRGB value of the scene's training views (all pixels and channels), so that the scene's
@@ -114,9 +115,11 @@ class EnhanceConfig(InstantiateConfig):
     GPU when training there; every other mode runs on the CPU)."""
 
     def __setstate__(self, state: dict) -> None:
-        """A saved run's ``config.yml`` may name options retired since (:data:`RETIRED`): each one that asked
-        for something other than what runs now is dropped with one warning."""
-        state.setdefault("tone", "network")  # saved before capture tone: the network's tone ran
+        """A saved run's ``config.yml`` may lack options added since (it loads with what it ran,
+        :data:`LEGACY_DEFAULTS`) or name options retired since (:data:`RETIRED`): each one that asked for something
+        other than what runs now is dropped with one warning."""
+        for option in LEGACY_DEFAULTS.keys() - RETIRED.keys():
+            state.setdefault(option, LEGACY_DEFAULTS[option])
         if state.keys() & RETIRED.keys():  # saved before the retirement (a config saved since has none)
             for option, (now, why) in RETIRED.items():
                 asked = state.pop(option, LEGACY_DEFAULTS.get(option))
