@@ -26,7 +26,8 @@ import numpy as np
 import torch
 from PIL import Image
 
-from naka_gs_plugin.sim.effects import add_noise, encode, sensor
+from naka_gs_plugin.data.images import read_stored
+from naka_gs_plugin.sim.effects import add_noise, encode, sensor, srgb_to_linear
 from naka_gs_plugin.sim.spec import Exposure, Noise, Quantize, Response
 
 SCENE = Path("../shared/data/realx3d/BlueHawaii")
@@ -37,12 +38,13 @@ EDGES = np.array([0, 1.1, 2.6, 4, 6.8, 10.9, 16, 25, 40, 255])
 
 
 def linear(codes):
-    x = codes / 255.0
-    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
+    """8-bit sRGB codes ``[H, W, 3]`` as linear light (kornia's sRGB curve, in float64)."""
+    return srgb_to_linear(torch.from_numpy(np.ascontiguousarray(codes / 255.0))).numpy()
 
 
 def read(path):
-    return cv2.imread(str(path))[:, :, ::-1].astype(np.float64)
+    """An image as RGB codes in [0, 255], float64 (the project's reader)."""
+    return read_stored(path).astype(np.float64)
 
 
 def jpeg(codes):

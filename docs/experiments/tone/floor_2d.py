@@ -1,8 +1,7 @@
 """2D probe of capture tone restricted to the capture's floor (``tone capture`` now): the ceiling only where the
 filtered capture is under 2 codes (below the range the view's gain is metered on: there the capture recorded no
 signal and any lift is the network's), faded out by 4 codes; against ``tone network`` and the ceiling everywhere
-(the first measured ``tone capture``). Each variant then
-through the scene's exposure step, scored against the normal-light photos (``naka-gs-enhance``'s scoring).
+(the first measured ``tone capture``). Each variant then through the scene's exposure step, scored against the normal-light photos (``naka-gs-enhance``'s scoring).
 BlueHawaii: its 30 training views against their references, shipped weights; a LOM scene: its training views
 against their photos, hold-out weights ``outputs/correction-loo/SCENE/best.pt``.
     .venv/bin/python docs/experiments/tone/floor_2d.py BlueHawaii chair
