@@ -116,6 +116,24 @@ step_train() {
   local grid=${GRID:-scripts/gpu/cuda-vs-cpu.yaml} rc=0
   local name
   name=$(basename "$grid" .yaml)
+  if [ "${TRAIN_PARALLEL:-0}" = 1 ]; then
+    # Every run of the grid at once, each its own grid process (own folder, CPU threads split between
+    # them): small scenes leave the GPU mostly idle between one run's kernel launches. A run stopped by
+    # the limit keeps its log, whose "[naka-gs bench] ... step N: PSNR" lines are its milestones so far.
+    local ids id pids=()
+    mapfile -t ids < <("$PY" -c "import sys; from pathlib import Path; from benchmarks.grid import grid_runs, load_grid; print('\n'.join(r['id'] for r in grid_runs(load_grid(Path(sys.argv[1])), Path('.'))))" "$grid")
+    local threads=$(($(nproc) / ${#ids[@]})); [ "$threads" -ge 1 ] || threads=1
+    for id in "${ids[@]}"; do
+      PYTHONUNBUFFERED=1 OMP_NUM_THREADS=$threads NUMBA_NUM_THREADS=$threads MPLBACKEND=Agg timeout -k 10 "${TRAIN_LIMIT_S:-480}" \
+        "$PY" -m benchmarks.grid "$grid" --only "$id" --out "$OUT/$name/${id//\//-}" >"$OUT/$name-${id//\//-}.log" 2>&1 &
+      pids+=($!)
+    done
+    for i in "${!pids[@]}"; do wait "${pids[$i]}" || { echo "${ids[$i]}: exit $?"; rc=1; }; done
+    grep -h "step [0-9]*: PSNR" "$OUT/$name"/*/logs/*/*/log.txt
+    tar czf "$OUT/$name.tgz" --exclude '*.ckpt' --exclude cache -C "$OUT" "$name" $(cd "$OUT" && ls "$name"-*.log) &&
+      rm -rf "${OUT:?}/$name" "$OUT/$name"-*.log
+    return $rc
+  fi
   MPLBACKEND=Agg timeout "${TRAIN_LIMIT_S:-480}" "$PY" -m benchmarks.grid "$grid" --out "$OUT/$name" || rc=$?
   # The grid records a failed run and carries on; here a failed run fails the step.
   "$PY" -c "import json, sys; r = json.load(open(sys.argv[1]))['runs']; bad = [k for k, v in r.items() if v['status'] != 'ok']; print('failed runs:', bad) if bad else None; sys.exit(bool(bad))" "$OUT/$name/results.json" || rc=1
