@@ -130,8 +130,11 @@ step_train() {
     done
     for i in "${!pids[@]}"; do wait "${pids[$i]}" || { echo "${ids[$i]}: exit $?"; rc=1; }; done
     grep -h "step [0-9]*: PSNR" "$OUT/$name"/*/logs/*/*/log.txt
-    tar czf "$OUT/$name.tgz" --exclude '*.ckpt' --exclude cache -C "$OUT" "$name" $(cd "$OUT" && ls "$name"-*.log) &&
-      rm -rf "${OUT:?}/$name" "$OUT/$name"-*.log
+    # Results, logs and configs only (a run stopped mid-save leaves a checkpoint being written), and at
+    # most 8 files come back from such a machine: everything else goes.
+    tar czf "$OUT/$name.tgz" --warning=no-file-changed --exclude '*.ckpt' --exclude 'events.out.*' --exclude cache \
+      -C "$OUT" "$name" $(cd "$OUT" && ls "$name"-*.log)
+    rm -rf "${OUT:?}/$name" "$OUT/$name"-*.log
     return $rc
   fi
   MPLBACKEND=Agg timeout "${TRAIN_LIMIT_S:-480}" "$PY" -m benchmarks.grid "$grid" --out "$OUT/$name" || rc=$?
