@@ -11,6 +11,9 @@ applies the default exposure step and scores like ``naka-gs-enhance --reference`
 - ``eps E``: the neutral floor added to every channel before the ratio (default 1e-4, linear): a capture pixel
   near black gets a grey chromaticity;
 - ``blur S``: the Gaussian low-pass on the capture, in pixels (default 3);
+- ``wide S T``: below ``T`` codes of the 3 px filtered capture (linear, faded in from 0), the chromaticity of the
+  capture filtered over ``S`` px in linear light instead (a luminance-weighted neighbourhood: a shadow takes the
+  colour of the lit surfaces around it, where the capture recorded chroma above its quantisation);
 - ``network``: the network's own colour (no capture chroma);
 - ``oracle``: the default output with one per-scene white balance fitted to the references (diagnosis only: a
   ceiling for any scene-wide colour correction, never a method).
@@ -60,6 +63,20 @@ def capture_chroma(low, decode="srgb", cbcr=1.0, blur=3.0, eps=1e-4):
     return (lin + eps) / (lin.mean(0, keepdim=True) + eps)
 
 
+def wide_chroma(low, sigma, codes, blur=3.0):
+    """Capture chroma where the filtered capture is above ``codes`` 8-bit codes; below, blended (linearly in
+    its brightness) toward the chromaticity of the linear capture low-passed over ``sigma`` px."""
+    local = capture_chroma(low, blur=blur)
+    lin = linear(low.permute(2, 0, 1)).permute(1, 2, 0).numpy()
+    wide = torch.from_numpy(cv2.GaussianBlur(lin, (0, 0), sigma, borderType=cv2.BORDER_REPLICATE)).permute(2, 0, 1)
+    wide = (wide + 1e-6) / (wide.mean(0, keepdim=True) + 1e-6)
+    k = max(3, int(3 * blur) | 1)
+    cap = kornia.filters.gaussian_blur2d(low.permute(2, 0, 1)[None], (k, k), (blur, blur), border_type="replicate")
+    level = linear(cap[0].clamp(0, 1)).mean(0, keepdim=True)
+    w = (level / linear(torch.tensor(codes / 255.0))).clamp(0, 1)
+    return w * local + (1 - w) * wide
+
+
 def main(levers):
     dm = LowLightDatamanagerConfig(
         dataparser=LowLightDataParserConfig(data=SCENE), enhance=EnhanceConfig(exposure="none")
@@ -79,6 +96,9 @@ def main(levers):
             out = [with_chroma(i, capture_chroma(lo, eps=float(value))) for i, lo in zip(cached, lows)]
         elif kind == "blur":
             out = [with_chroma(i, capture_chroma(lo, blur=float(value))) for i, lo in zip(cached, lows)]
+        elif kind == "wide":
+            sigma, _, codes = value.partition(":")
+            out = [with_chroma(i, wide_chroma(lo, float(sigma), float(codes))) for i, lo in zip(cached, lows)]
         elif kind == "network":
             naka, correction = dm.enhancer.view_stages[:2]
             naka.prepare(lows)
@@ -97,7 +117,7 @@ def main(levers):
                 lin = linear(image.permute(2, 0, 1)) * gains[:, None, None]
                 out.append(with_chroma(image, lin / lin.mean(0, keepdim=True).clamp(min=1e-8)))
         else:
-            raise SystemExit(f"unknown lever {lever!r}: decode:G, cbcr:A, eps:E, blur:S, network or oracle")
+            raise SystemExit(f"unknown lever {lever!r}: decode:G, cbcr:A, eps:E, blur:S, wide:S:T, network or oracle")
         print(f"BlueHawaii, {lever}:", flush=True)
         score_against(ExposureStage().apply_all(out), refs, names)
 
