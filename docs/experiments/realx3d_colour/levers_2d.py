@@ -73,7 +73,7 @@ def wide_chroma(low, sigma, codes, blur=3.0):
     k = max(3, int(3 * blur) | 1)
     cap = kornia.filters.gaussian_blur2d(low.permute(2, 0, 1)[None], (k, k), (blur, blur), border_type="replicate")
     level = linear(cap[0].clamp(0, 1)).mean(0, keepdim=True)
-    w = (level / linear(torch.tensor(codes / 255.0))).clamp(0, 1)
+    w = (level / linear(torch.full((3, 1, 1), codes / 255.0))[0]).clamp(0, 1)
     return w * local + (1 - w) * wide
 
 
