@@ -13,32 +13,18 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
+sys.path.insert(0, str(Path(__file__).parents[1]))
 from levers_2d import wide_chroma, with_chroma  # noqa: E402
+from scene_2d import scene_views  # noqa: E402
 
-from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig, read_split  # noqa: E402
-from naka_gs_plugin.datamanager import LowLightDatamanagerConfig  # noqa: E402
-from naka_gs_plugin.enhance.pipeline import EnhanceConfig  # noqa: E402
-from naka_gs_plugin.enhance.stages import ExposureStage, to_float01  # noqa: E402
+from naka_gs_plugin.enhance.stages import ExposureStage  # noqa: E402
 from naka_gs_plugin.scripts.enhance import score_against  # noqa: E402
 
 torch.set_grad_enabled(False)
 args = sys.argv[1:]
 scenes, variants = (args[: args.index("--")], args[args.index("--") + 1 :]) if "--" in args else (args, ["48:4"])
 for scene in scenes or ["BlueHawaii", "chair"]:
-    realx3d = scene == "BlueHawaii"
-    root = Path("../shared/data/realx3d" if realx3d else "../shared/data/lom") / scene
-    correction = "default" if realx3d else f"outputs/correction-loo/{scene}/best.pt"
-    dm = LowLightDatamanagerConfig(
-        dataparser=LowLightDataParserConfig(data=root), enhance=EnhanceConfig(correction=correction, exposure="none")
-    ).setup(device="cpu")
-    lows = [to_float01(d["image"]) for d in dm.load_unenhanced_train()]  # at the training resolution
-    base = dm.enhancer.enhance_images(lows)
-    names = [p.name for p in read_split(root, "transforms_train.json").images]
-    if realx3d:
-        by_stem = {p.stem: p for p in read_split(root, "transforms_reference.json").images}
-        refs = [by_stem[Path(n).stem] for n in names]
-    else:
-        refs = [root / "high" / n for n in names]
+    lows, base, refs, names = scene_views(scene)
     print(f"{scene}, default:", flush=True)
     score_against(ExposureStage().apply_all(base), refs, names)
     for variant in variants:

@@ -1,0 +1,35 @@
+"""One scene's training views for the 2D probes (``tone/floor_2d.py``, ``realx3d_colour/wide_chroma_2d.py``):
+the dark captures at the training resolution, their enhancement up to the exposure step, and the normal-light
+photos to score them against. BlueHawaii: the shipped weights and its references (``transforms_reference.json``);
+a LOM scene: its hold-out weights ``outputs/correction-loo/SCENE/best.pt`` and its ``high/`` photos.
+"""
+
+from pathlib import Path
+from typing import List, Tuple
+
+import torch
+
+from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig, read_split
+from naka_gs_plugin.datamanager import LowLightDatamanagerConfig
+from naka_gs_plugin.enhance.pipeline import EnhanceConfig
+from naka_gs_plugin.enhance.stages import to_float01
+
+
+def scene_views(scene: str, **enhance) -> Tuple[List[torch.Tensor], List[torch.Tensor], List[Path], List[str]]:
+    """``(captures, enhanced, references, names)`` of ``scene``'s training views; sRGB ``[H, W, 3]`` in [0, 1].
+    ``enhance``: :class:`EnhanceConfig` options beside the scene's weights (the exposure step is left out)."""
+    realx3d = scene == "BlueHawaii"
+    root = Path("../shared/data/realx3d" if realx3d else "../shared/data/lom") / scene
+    correction = "default" if realx3d else f"outputs/correction-loo/{scene}/best.pt"
+    dm = LowLightDatamanagerConfig(
+        dataparser=LowLightDataParserConfig(data=root),
+        enhance=EnhanceConfig(correction=correction, exposure="none", **enhance),
+    ).setup(device="cpu")
+    lows = [to_float01(d["image"]) for d in dm.load_unenhanced_train()]  # at the training resolution
+    names = [p.name for p in read_split(root, "transforms_train.json").images]
+    if realx3d:
+        by_stem = {p.stem: p for p in read_split(root, "transforms_reference.json").images}
+        refs = [by_stem[Path(n).stem] for n in names]
+    else:
+        refs = [root / "high" / n for n in names]
+    return lows, dm.enhancer.enhance_images(lows), refs, names
