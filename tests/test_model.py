@@ -277,3 +277,24 @@ def test_the_loss_uses_the_compiled_ssim_with_upstreams_value_and_gradient(frame
         results.append((loss.detach(), model.means.grad.clone()))
     torch.testing.assert_close(results[0][0], results[1][0], rtol=0, atol=1e-6)
     torch.testing.assert_close(results[0][1], results[1][1], rtol=1e-3, atol=1e-3 * float(results[1][1].abs().max()))
+
+
+def test_the_psnr_is_torchmetrics_value_outside_autograd(frames):
+    """Splatfacto's per-step training PSNR and eval PSNR: the value of torchmetrics' module, without a graph."""
+    from torchmetrics.image import PeakSignalNoiseRatio
+
+    cameras, images = frames
+    model, _, _ = _model()
+    model.train()
+    model.step, model.optimizers = 10**6, {}  # past the resolution schedule: full-size renders
+    torch.manual_seed(0)
+    outputs = model.get_outputs(cameras[0:1])
+    metrics = model.get_metrics_dict(outputs, {"image": images[0]})
+    assert outputs["rgb"].requires_grad and not metrics["psnr"].requires_grad
+    gt = images[0].float() / 255.0 if images[0].dtype == torch.uint8 else images[0]
+    expected = PeakSignalNoiseRatio(data_range=1.0)(outputs["rgb"].detach(), gt)
+    torch.testing.assert_close(metrics["psnr"], expected, rtol=0, atol=1e-5)
+    model.eval()
+    with torch.no_grad():
+        image_metrics, _ = model.get_image_metrics_and_images(model.get_outputs(cameras[0:1]), {"image": images[0]})
+    assert math.isfinite(image_metrics["psnr"])

@@ -15,7 +15,8 @@ stock splatfacto breaks on a CPU-only or offline machine:
   (:mod:`naka_gs_plugin.model.rasterize`) otherwise (never by try/except around gsplat: each
   failed call re-attempts a CUDA JIT build).
 - the SSIM of the loss and the eval metric: splatfacto's ``pytorch_msssim`` module, with compiled
-  kernels for CPU images (:mod:`naka_gs_plugin.model.ssim`; on CUDA it is upstream's).
+  kernels for CPU images (:mod:`naka_gs_plugin.model.ssim`; on CUDA it is upstream's); its PSNR the
+  same torchmetrics formula without the metric module's bookkeeping (:class:`PairPSNR`).
 - per-view appearance (``appearance affine``, :mod:`naka_gs_plugin.model.appearance`): a gain and
   offset per training view, applied to its render in training only (after splatfacto's bilateral grid
   would be); ``get_param_groups`` adds their group.
@@ -37,6 +38,7 @@ from nerfstudio.models.splatfacto import RGB2SH, SplatfactoModel, SplatfactoMode
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 from torch.nn import Parameter
+from torchmetrics.functional.image import peak_signal_noise_ratio
 
 from naka_gs_plugin.model.appearance import ViewAppearance
 from naka_gs_plugin.model.lpips import LazyLPIPS, LPIPSWeightsError, load_lpips
@@ -94,6 +96,18 @@ def all_finite(tensor: Tensor) -> bool:
     return bool(torch.isfinite(low) & torch.isfinite(high))
 
 
+class PairPSNR(torch.nn.Module):
+    """Splatfacto's ``PeakSignalNoiseRatio(data_range=1.0)`` for the way splatfacto calls it: one image pair at
+    a time (every training step, every eval image), [0, 1] images, dB. The same value, from torchmetrics'
+    functional form and outside autograd: the module form also keeps running sums over calls that splatfacto
+    never reads and records the computation for a backward nobody runs, which at every training step cost as
+    much as a loss term."""
+
+    def forward(self, preds: Float[Tensor, "*shape"], target: Float[Tensor, "*shape"]) -> Float[Tensor, ""]:
+        with torch.no_grad():
+            return peak_signal_noise_ratio(preds, target, data_range=1.0)
+
+
 def viewmat_from_c2w(c2w: Float[Tensor, "C 3 4"]) -> Float[Tensor, "C 4 4"]:
     """OpenGL camera-to-world -> OpenCV world-to-camera (gsplat's ``viewmats``).
 
@@ -133,6 +147,7 @@ class NakaGSModel(SplatfactoModel):
             super().populate_modules()
         # Splatfacto's SSIM module, with compiled kernels for CPU images (the same loss and metric).
         self.ssim = SSIMLoss(data_range=1.0, size_average=True, channel=3)
+        self.psnr = PairPSNR()
         if seed_rgb is not None:
             self.seed_points = (self.seed_points[0], seed_rgb)
             rgb = seed_rgb.float() / 255.0
