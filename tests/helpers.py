@@ -8,6 +8,8 @@ from typing import Callable, Dict, Optional, Sequence
 import torch
 import yaml
 
+from naka_gs_plugin.config import FusedAdamConfig
+
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 """The real scenes (LOM, LOL, RealX3D), read in place."""
 SHARED_REFERENCE = Path(__file__).resolve().parents[2] / "shared" / "reference"
@@ -25,13 +27,13 @@ def train_steps(
     after_step: Optional[Callable[[int], None]] = None,
     lrs: Optional[Dict[str, float]] = None,
 ) -> torch.Tensor:
-    """The training loop of nerfstudio's trainer, reduced: one Adam per parameter group (lr 1e-3 or
-    ``lrs[group]``),
+    """The training loop of nerfstudio's trainer, reduced: one Adam per parameter group as naka-gs configures
+    them (:class:`~naka_gs_plugin.config.FusedAdamConfig`; lr 1e-3 or ``lrs[group]``),
     views in turn with their index in ``metadata["cam_idx"]`` as the datamanager sets it,
     ``step_post_backward`` (densification) after every step. Returns the last step's main loss;
     ``after_step(step)`` runs after each step."""
     lrs = lrs or {}
-    opts = {k: torch.optim.Adam(p, lr=lrs.get(k, 1e-3)) for k, p in model.get_param_groups().items() if p}
+    opts = {k: FusedAdamConfig(lr=lrs.get(k, 1e-3)).setup(p) for k, p in model.get_param_groups().items() if p}
     model.train()
     for step in range(steps):
         model.step, model.optimizers = step, opts

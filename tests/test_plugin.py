@@ -130,3 +130,28 @@ def test_the_fast_preset_is_the_default_schedule_shrunk():
     assert fast.pipeline.datamanager == default.pipeline.datamanager
     assert fast.pipeline.model.rasterizer == default.pipeline.model.rasterizer
     assert fast.method_name == "naka-gs-fast"
+
+
+def test_the_optimizers_are_torchs_fused_adam_on_a_cpu():
+    """Every parameter group's Adam is torch's fused one on a CPU (torch's default on CUDA), with its step matching
+    the unfused Adam's to float32 rounding."""
+    import torch
+
+    from naka_gs_plugin import config
+
+    for method in config.METHODS.values():
+        for name, spec in method.config.optimizers.items():
+            built = spec["optimizer"].setup([torch.nn.Parameter(torch.zeros(4, 3))])
+            assert built.defaults["fused"] is (None if config.CUDA else True), name
+    g = torch.Generator().manual_seed(0)
+    start, grads = torch.randn(64, 3, generator=g), torch.randn(20, 64, 3, generator=g)
+    ends = []
+    for fused in (True, None):
+        param = torch.nn.Parameter(start.clone())
+        adam = config.FusedAdamConfig(lr=1e-3, eps=1e-15, fused=fused).setup([param])
+        for grad in grads:
+            param.grad = grad.clone()
+            adam.step()
+        ends.append(param.detach())
+    assert not torch.equal(ends[0], start)
+    torch.testing.assert_close(ends[0], ends[1], rtol=0, atol=1e-6)
