@@ -19,7 +19,8 @@ stock splatfacto breaks on a CPU-only or offline machine:
   same torchmetrics formula without the metric module's bookkeeping (:class:`PairPSNR`).
 - per-view appearance (``appearance affine``, :mod:`naka_gs_plugin.model.appearance`): a gain and
   offset per training view, applied to its render in training only (after splatfacto's bilateral grid
-  would be); ``get_param_groups`` adds their group.
+  would be); ``get_param_groups`` adds their group. The render's compositing onto the background and
+  that appearance run as one compiled pass on a CPU (:mod:`naka_gs_plugin.model.composite`).
 - training safety: a non-finite loss or parameter stops training with a clear message before
   anything non-finite can reach a checkpoint.
 """
@@ -41,6 +42,7 @@ from torch.nn import Parameter
 from torchmetrics.functional.image import peak_signal_noise_ratio
 
 from naka_gs_plugin.model.appearance import ViewAppearance
+from naka_gs_plugin.model.composite import composite
 from naka_gs_plugin.model.lpips import LazyLPIPS, LPIPSWeightsError, load_lpips
 from naka_gs_plugin.model.projection import MAX_SH_DEGREE
 from naka_gs_plugin.model.ssim import SSIMLoss
@@ -278,13 +280,20 @@ class NakaGSModel(SplatfactoModel):
             )
 
         background = self._get_background_color()
-        rgb = torch.clamp(render[:, ..., :3] + (1 - alpha) * background, 0.0, 1.0)
-        if self.config.use_bilateral_grid and self.training:
-            if camera.metadata is not None and "cam_idx" in camera.metadata:
-                rgb = self._apply_bilateral_grid(rgb, camera.metadata["cam_idx"], H, W)
-        if self.view_appearance is not None and self.training:
-            if camera.metadata is not None and "cam_idx" in camera.metadata:
-                rgb = self.view_appearance(rgb, int(camera.metadata["cam_idx"]))
+        # Compositing, splatfacto's bilateral grid, the view's appearance; compiled into one pass on a CPU where
+        # no bilateral grid comes between the two (naka_gs_plugin.model.composite).
+        cam_idx = (
+            camera.metadata["cam_idx"] if self.training and camera.metadata and "cam_idx" in camera.metadata else None
+        )
+        appearance = None
+        if self.view_appearance is not None and cam_idx is not None:
+            appearance = self.view_appearance.transform(int(cam_idx))
+        if self.config.use_bilateral_grid and cam_idx is not None:
+            rgb = self._apply_bilateral_grid(composite(render[:, ..., :3], alpha, background), cam_idx, H, W)
+            if appearance is not None:
+                rgb = self.view_appearance(rgb, int(cam_idx))
+        else:
+            rgb = composite(render[:, ..., :3], alpha, background, *(appearance or ()))
         depth_im = None
         if render_mode == "RGB+ED":
             depth_im = render[:, ..., 3:4]
