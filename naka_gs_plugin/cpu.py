@@ -6,6 +6,9 @@
 - :func:`fit_threads`: PyTorch starts one thread per physical core of the *machine*, also inside a
   container limited to fewer CPUs (CPU affinity, a cgroup CPU quota); more threads than CPUs turns
   every OpenMP barrier into a wait for a descheduled thread. numba's kernels follow PyTorch's count.
+- :func:`torch_threads_kept`: numba's OpenMP pool, started by the first parallel kernel, resets the OpenMP
+  runtime it shares with PyTorch (hence PyTorch's thread count) to numba's; every caller of numba kernels
+  keeps PyTorch's count with it.
 - :func:`keep_freed_memory`: glibc's allocator thresholds for training, whose every step allocates and
   frees the same multi-megabyte tensors (:func:`glibc`: the C library's allocator calls, if glibc).
 """
@@ -15,8 +18,9 @@ from __future__ import annotations
 import ctypes
 import math
 import os
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Optional, Tuple
+from typing import Iterator, Optional, Tuple
 
 import torch
 
@@ -93,6 +97,18 @@ MMAP_THRESHOLD = 32 << 20
 TRIM_THRESHOLD = 256 << 20
 """Freed memory kept at the top of the heap before glibc hands it back: the most a process keeps
 mapped beyond what it uses."""
+
+
+@contextmanager
+def torch_threads_kept() -> Iterator[None]:
+    """PyTorch's intra-op thread count as it was before the block, whatever numba's pool did to it (module
+    docstring)."""
+    threads = torch.get_num_threads()
+    try:
+        yield
+    finally:
+        if torch.get_num_threads() != threads:
+            torch.set_num_threads(threads)
 
 
 def keep_freed_memory() -> bool:

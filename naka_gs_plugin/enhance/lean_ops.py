@@ -45,7 +45,7 @@ from numba import njit, prange, types
 from numba.extending import intrinsic, overload
 from torch import Tensor, nn
 
-from naka_gs_plugin.cpu import M_MMAP_THRESHOLD, M_TRIM_THRESHOLD, glibc, keep_freed_memory
+from naka_gs_plugin.cpu import M_MMAP_THRESHOLD, M_TRIM_THRESHOLD, glibc, keep_freed_memory, torch_threads_kept
 from naka_gs_plugin.enhance.correction_net import ChromaGuided, ConvUnit, ResBlock, Stage, standardize
 
 _CHUNK = 4096
@@ -270,13 +270,9 @@ def _threads_as_torch(fn):
     pool, started on first use, resets the shared OpenMP runtime's (hence PyTorch's) count."""
 
     def wrapped(*args, **kwargs):
-        threads = torch.get_num_threads()
-        numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
-        try:
+        numba.set_num_threads(min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS))
+        with torch_threads_kept():
             return fn(*args, **kwargs)
-        finally:
-            if torch.get_num_threads() != threads:
-                torch.set_num_threads(threads)
 
     return functools.wraps(fn)(wrapped)
 

@@ -20,6 +20,8 @@ from jaxtyping import Float
 from numba import njit, prange
 from torch import Tensor
 
+from naka_gs_plugin.cpu import torch_threads_kept
+
 
 @njit(cache=True, inline="always")
 def _clamp01(v):
@@ -130,10 +132,5 @@ def composite_cpu_fast(
     appearance = gain is not None
     if not appearance:
         gain = offset = torch.ones(3)
-    # The first parallel kernel starts numba's OpenMP pool, which resets the thread count it shares with PyTorch.
-    torch_threads = torch.get_num_threads()
-    try:
+    with torch_threads_kept():
         return _Composite.apply(render, alpha, background, gain, offset, appearance)
-    finally:
-        if torch.get_num_threads() != torch_threads:
-            torch.set_num_threads(torch_threads)

@@ -51,6 +51,7 @@ from numba import njit, prange
 from rich.console import Console
 from torch import Tensor
 
+from naka_gs_plugin.cpu import torch_threads_kept
 from naka_gs_plugin.model.project_cpu_fast import (
     _project_backward,
     _project_forward,
@@ -611,33 +612,30 @@ def warm_up(dtype: torch.dtype = torch.float32) -> float:
         return 0.0
     _WARMING.add(dtype)
     started = time.perf_counter()
-    # The first parallel kernel starts numba's OpenMP pool, which resets the runtime it shares with
-    # PyTorch to numba's thread count: keep the caller's PyTorch setting.
-    torch_threads = torch.get_num_threads()
+    # The first parallel kernel starts numba's OpenMP pool: keep the caller's PyTorch thread count.
     try:
-        params = dict(
-            means=torch.tensor([[0.0, 0.0, 2.0], [0.1, 0.0, 3.0]], dtype=dtype),
-            quats=torch.tensor([[1.0, 0.1, 0.2, 0.3], [1.0, 0.0, 0.0, 0.0]], dtype=dtype),
-            scales=torch.full((2, 3), 0.3, dtype=dtype),
-            opacities=torch.tensor([0.5, 0.9], dtype=dtype),
-            colors=torch.ones(2, 16, 3, dtype=dtype),
-        )
-        params = {k: v.requires_grad_() for k, v in params.items()}
-        camera = dict(
-            viewmats=torch.eye(4, dtype=dtype)[None],
-            Ks=torch.tensor([[[8.0, 0, 4], [0, 8, 4], [0, 0, 1]]], dtype=dtype),
-            width=8,
-            height=8,
-        )
-        with torch.enable_grad():
-            colors, alphas, _ = rasterization(
-                **params, **camera, sh_degree=3, rasterize_mode="antialiased", render_mode="RGB+ED", absgrad=True
+        with torch_threads_kept():
+            params = dict(
+                means=torch.tensor([[0.0, 0.0, 2.0], [0.1, 0.0, 3.0]], dtype=dtype),
+                quats=torch.tensor([[1.0, 0.1, 0.2, 0.3], [1.0, 0.0, 0.0, 0.0]], dtype=dtype),
+                scales=torch.full((2, 3), 0.3, dtype=dtype),
+                opacities=torch.tensor([0.5, 0.9], dtype=dtype),
+                colors=torch.ones(2, 16, 3, dtype=dtype),
             )
-            (colors.sum() + alphas.sum()).backward()
+            params = {k: v.requires_grad_() for k, v in params.items()}
+            camera = dict(
+                viewmats=torch.eye(4, dtype=dtype)[None],
+                Ks=torch.tensor([[[8.0, 0, 4], [0, 8, 4], [0, 0, 1]]], dtype=dtype),
+                width=8,
+                height=8,
+            )
+            with torch.enable_grad():
+                colors, alphas, _ = rasterization(
+                    **params, **camera, sh_degree=3, rasterize_mode="antialiased", render_mode="RGB+ED", absgrad=True
+                )
+                (colors.sum() + alphas.sum()).backward()
     finally:
         _WARMING.discard(dtype)
-        if torch.get_num_threads() != torch_threads:
-            torch.set_num_threads(torch_threads)
     seconds = time.perf_counter() - started
     kernels = (
         _visible_by_depth, _make_records, _row_spans, _tile_pixels, _bin_tiles, _gather_rows, _forward_kernel,
