@@ -9,6 +9,7 @@
 - :func:`torch_threads_kept`: numba's OpenMP pool, started by the first parallel kernel, resets the OpenMP
   runtime it shares with PyTorch (hence PyTorch's thread count) to numba's; every caller of numba kernels
   keeps PyTorch's count with it.
+- :func:`numba_fast_path`: a compiled fast path, or None where numba does not import.
 - :func:`keep_freed_memory`: glibc's allocator thresholds for training, whose every step allocates and
   frees the same multi-megabyte tensors (:func:`glibc`: the C library's allocator calls, if glibc).
 """
@@ -16,6 +17,8 @@
 from __future__ import annotations
 
 import ctypes
+import functools
+import importlib
 import math
 import os
 from contextlib import contextmanager
@@ -97,6 +100,16 @@ MMAP_THRESHOLD = 32 << 20
 TRIM_THRESHOLD = 256 << 20
 """Freed memory kept at the top of the heap before glibc hands it back: the most a process keeps
 mapped beyond what it uses."""
+
+
+@functools.cache
+def numba_fast_path(module: str, name: str):
+    """``module.name``, a numba-compiled fast path, or None where numba does not import: a broken install only
+    loses the fast path, and the caller runs its PyTorch reference (as the rasterizer's ``auto`` falls back)."""
+    try:
+        return getattr(importlib.import_module(module), name)
+    except ImportError:
+        return None
 
 
 @contextmanager

@@ -18,6 +18,8 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
+from naka_gs_plugin.cpu import numba_fast_path
+
 
 def composite_torch(
     render: Float[Tensor, "*batch H W 3"],
@@ -36,17 +38,7 @@ def composite_torch(
 
 def _fast_path():
     """:func:`.composite_cpu_fast.composite_cpu_fast`, or None where numba does not import."""
-    global _FAST
-    if _FAST is False:
-        try:
-            from naka_gs_plugin.model.composite_cpu_fast import composite_cpu_fast
-        except ImportError:
-            composite_cpu_fast = None
-        _FAST = composite_cpu_fast
-    return _FAST
-
-
-_FAST = False
+    return numba_fast_path("naka_gs_plugin.model.composite_cpu_fast", "composite_cpu_fast")
 
 
 def composite(

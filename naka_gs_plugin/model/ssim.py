@@ -18,21 +18,12 @@ from jaxtyping import Float
 from pytorch_msssim import SSIM
 from torch import Tensor
 
+from naka_gs_plugin.cpu import numba_fast_path
+
 
 def _fast_path():
-    """:func:`.ssim_cpu_fast.ssim_cpu_fast`, or None where numba does not import (a broken install only loses the
-    fast path, as the rasterizer's ``auto`` falls back to torch)."""
-    global _FAST
-    if _FAST is False:
-        try:
-            from naka_gs_plugin.model.ssim_cpu_fast import ssim_cpu_fast
-        except ImportError:
-            ssim_cpu_fast = None
-        _FAST = ssim_cpu_fast
-    return _FAST
-
-
-_FAST = False
+    """:func:`.ssim_cpu_fast.ssim_cpu_fast`, or None where numba does not import."""
+    return numba_fast_path("naka_gs_plugin.model.ssim_cpu_fast", "ssim_cpu_fast")
 
 
 class SSIMLoss(SSIM):
