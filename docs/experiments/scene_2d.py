@@ -5,7 +5,7 @@ a LOM scene: its hold-out weights ``outputs/correction-loo/SCENE/best.pt`` and i
 """
 
 from pathlib import Path
-from typing import List, Tuple
+from typing import Callable, List, Optional, Tuple
 
 import torch
 
@@ -15,8 +15,11 @@ from naka_gs_plugin.enhance.pipeline import EnhanceConfig
 from naka_gs_plugin.enhance.stages import to_float01
 
 
-def scene_views(scene: str, **enhance) -> Tuple[List[torch.Tensor], List[torch.Tensor], List[Path], List[str]]:
+def scene_views(
+    scene: str, transform: Optional[Callable[[List[torch.Tensor]], List[torch.Tensor]]] = None, **enhance
+) -> Tuple[List[torch.Tensor], List[torch.Tensor], List[Path], List[str]]:
     """``(captures, enhanced, references, names)`` of ``scene``'s training views; sRGB ``[H, W, 3]`` in [0, 1].
+    ``transform``: applied to the captures before they are enhanced (the returned captures are its output).
     ``enhance``: :class:`EnhanceConfig` options beside the scene's weights (the exposure step is left out)."""
     realx3d = scene == "BlueHawaii"
     root = Path("../shared/data/realx3d" if realx3d else "../shared/data/lom") / scene
@@ -26,6 +29,8 @@ def scene_views(scene: str, **enhance) -> Tuple[List[torch.Tensor], List[torch.T
         enhance=EnhanceConfig(correction=correction, exposure="none", **enhance),
     ).setup(device="cpu")
     lows = [to_float01(d["image"]) for d in dm.load_unenhanced_train()]  # at the training resolution
+    if transform is not None:
+        lows = transform(lows)
     names = [p.name for p in read_split(root, "transforms_train.json").images]
     if realx3d:
         by_stem = {p.stem: p for p in read_split(root, "transforms_reference.json").images}

@@ -14,6 +14,10 @@ applies the default exposure step and scores like ``naka-gs-enhance --reference`
 - ``wide S T``: below ``T`` codes of the 3 px filtered capture (linear, faded in from 0), the chromaticity of the
   capture filtered over ``S`` px in linear light instead (a luminance-weighted neighbourhood: a shadow takes the
   colour of the lit surfaces around it, where the capture recorded chroma above its quantisation);
+- ``pedestal R G B``: per-channel offsets, in codes of sRGB's linear toe (``1 / (255 x 12.92)``), subtracted
+  from the filtered linear capture before its chromaticity is taken;
+- ``prepedestal R G B``: the same offsets subtracted from the capture before the whole enhancement (Naka, the
+  network, capture chroma and tone see it; computed, not read from the cache);
 - ``network``: the network's own colour (no capture chroma);
 - ``oracle``: the default output with one per-scene white balance fitted to the references (diagnosis only: a
   ceiling for any scene-wide colour correction, never a method).
@@ -50,7 +54,7 @@ def with_chroma(image, chroma):
     return kornia.color.linear_rgb_to_rgb((lum * chroma).clamp(0, 1)).permute(1, 2, 0)
 
 
-def capture_chroma(low, decode="srgb", cbcr=1.0, blur=3.0, eps=1e-4):
+def capture_chroma(low, decode="srgb", cbcr=1.0, blur=3.0, eps=1e-4, pedestal=None):
     """The blurred capture's linear chromaticity, as :func:`naka_gs_plugin.enhance.chroma.capture_chroma`
     takes it, with the lever's decode or chroma scale."""
     k = max(3, int(3 * blur) | 1)
@@ -60,6 +64,8 @@ def capture_chroma(low, decode="srgb", cbcr=1.0, blur=3.0, eps=1e-4):
         cap = kornia.color.ycbcr_to_rgb(torch.cat([ycc[:, :1], 0.5 + cbcr * (ycc[:, 1:] - 0.5)], 1))
     cap = cap[0].clamp(0, 1)
     lin, eps = (linear(cap), eps) if decode == "srgb" else (cap**decode, eps ** (decode / 2.4))
+    if pedestal is not None:
+        lin = (lin - torch.tensor(pedestal)[:, None, None] / (255 * 12.92)).clamp(min=0)
     return (lin + eps) / (lin.mean(0, keepdim=True) + eps)
 
 
@@ -94,6 +100,19 @@ def main(levers):
             out = [with_chroma(i, capture_chroma(lo, cbcr=float(value))) for i, lo in zip(cached, lows)]
         elif kind == "eps":
             out = [with_chroma(i, capture_chroma(lo, eps=float(value))) for i, lo in zip(cached, lows)]
+        elif kind == "pedestal":
+            ped = [float(v) for v in value.split(":")]
+            out = [with_chroma(i, capture_chroma(lo, pedestal=ped)) for i, lo in zip(cached, lows)]
+        elif kind == "prepedestal":
+            ped = torch.tensor([float(v) for v in value.split(":")]) / (255 * 12.92)
+            out = dm.enhancer.enhance_images(
+                [
+                    kornia.color.linear_rgb_to_rgb(
+                        (linear(lo.permute(2, 0, 1)) - ped[:, None, None]).clamp(min=0)
+                    ).permute(1, 2, 0)
+                    for lo in lows
+                ]
+            )
         elif kind == "blur":
             out = [with_chroma(i, capture_chroma(lo, blur=float(value))) for i, lo in zip(cached, lows)]
         elif kind == "wide":
@@ -117,7 +136,10 @@ def main(levers):
                 lin = linear(image.permute(2, 0, 1)) * gains[:, None, None]
                 out.append(with_chroma(image, lin / lin.mean(0, keepdim=True).clamp(min=1e-8)))
         else:
-            raise SystemExit(f"unknown lever {lever!r}: decode:G, cbcr:A, eps:E, blur:S, wide:S:T, network or oracle")
+            raise SystemExit(
+                f"unknown lever {lever!r}: decode:G, cbcr:A, eps:E, blur:S, wide:S:T, pedestal:R:G:B, "
+                "prepedestal:R:G:B, network or oracle"
+            )
         print(f"BlueHawaii, {lever}:", flush=True)
         score_against(ExposureStage().apply_all(out), refs, names)
 
