@@ -79,16 +79,24 @@ def test_results_do_not_depend_on_the_thread_count():
 
 @pytest.mark.parametrize(
     "case",
-    ["smaller than the window", "float64"],
+    ["smaller than the window", "float64", "a 7-tap window", "one channel"],
 )
 def test_inputs_the_kernels_do_not_take_run_pytorch_msssim(case):
     gt, pred = _pair(8, 20) if case == "smaller than the window" else _pair(30, 30)
+    fused, reference = FUSED, REFERENCE
     if case == "float64":
         gt, pred = gt.double(), pred.double()
+    elif case == "a 7-tap window":
+        fused = SSIMLoss(data_range=1.0, size_average=True, channel=3, win_size=7)
+        reference = SSIM(data_range=1.0, size_average=True, channel=3, win_size=7)
+    elif case == "one channel":
+        gt, pred = gt[..., :1], pred[..., :1]
+        fused = SSIMLoss(data_range=1.0, size_average=True, channel=1)
+        reference = SSIM(data_range=1.0, size_average=True, channel=1)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # pytorch_msssim warns that it skips smoothing a dimension under 11 pixels
-        got = _value_and_grads(FUSED, gt, pred, grad_gt=False, grad_pred=True)
-        ref = _value_and_grads(REFERENCE, gt, pred, grad_gt=False, grad_pred=True)
+        got = _value_and_grads(fused, gt, pred, grad_gt=False, grad_pred=True)
+        ref = _value_and_grads(reference, gt, pred, grad_gt=False, grad_pred=True)
     assert torch.equal(got[0], ref[0]) and torch.equal(got[2], ref[2])
 
 

@@ -5,8 +5,9 @@ Gaussian window (sigma 1.5) over the valid region (no padding), ``K = (0.01, 0.0
 map over batch, channels and pixels. On a CPU that module is five grouped ``conv2d`` pairs forward and as
 many in autograd's backward, plus a dozen full-size temporaries: at 500x375 it costs as much as the
 rasterizer does at a few hundred Gaussians. :class:`SSIMLoss` is that module (same constructor and attributes)
-whose ``forward`` runs :mod:`.ssim_cpu_fast` for float32 CPU images of at least the window's size in both
-dimensions, and ``pytorch_msssim`` itself for anything else (CUDA, float64, smaller images): that is also the
+whose ``forward`` runs :mod:`.ssim_cpu_fast` for float32 RGB CPU images of at least the window's size in both
+dimensions with splatfacto's 11-tap window, and ``pytorch_msssim`` itself for anything else (CUDA, float64, smaller
+images, other windows or channel counts): that is also the
 readable reference the tests compare the kernels with. Inputs are NCHW in [0, 1], any strides (splatfacto passes
 permuted HWC images); whichever of the two inputs requires a gradient gets it.
 """
@@ -19,6 +20,11 @@ from pytorch_msssim import SSIM
 from torch import Tensor
 
 from naka_gs_plugin.cpu import numba_fast_path
+
+FAST_TAPS = 11
+"""The window length the compiled kernels take (splatfacto's); a compile-time constant of theirs."""
+FAST_CHANNELS = 3
+"""The channel count the compiled kernels take (RGB); a compile-time constant of theirs."""
 
 
 def _fast_path():
@@ -45,6 +51,8 @@ class SSIMLoss(SSIM):
             and X.device.type == "cpu"
             and Y.device.type == "cpu"
             and X.dtype == Y.dtype == torch.float32
+            and X.shape[1] == FAST_CHANNELS
+            and self.win_size == FAST_TAPS
             and min(X.shape[2:]) >= self.win_size
             and self.size_average
             and not self.nonnegative_ssim

@@ -6,7 +6,8 @@ vertically then horizontally, in one pass over the output rows (``prange``), whi
 its derivatives with respect to one input's blurred mean, blurred square and the blurred product; the backward is
 two transposed blurs of those three maps. Images are (H, W*C) float32 rows of interleaved channels (HWC memory, as
 splatfacto's images are), arithmetic is float32 as the reference's (sums over the window in another order), each
-row's sum of the map is float64. Every output row is computed by one thread alone, so the results do not depend
+row's sum of the map is float64. The window's length and the channel count are compile-time constants
+(:data:`TAPS`, :data:`CHANNELS`: splatfacto's 11 taps and RGB), so the taps unroll. Every output row is computed by one thread alone, so the results do not depend
 on the thread count. No ``fastmath``. Kernels compile on first use and are cached on disk by numba (as
 :mod:`.rasterize_cpu_fast`'s).
 """
@@ -19,109 +20,140 @@ from jaxtyping import Float
 from numba import njit, prange
 from torch import Tensor
 
-# Every loop below updates one array from others with plain indices: numba vectorises those, not a loop that
-# updates several arrays, indexes a shifted window (v[q + shift]: the kernels take slices instead) or mixes in
-# numba's float64 literals.
+from naka_gs_plugin.model.ssim import FAST_CHANNELS, FAST_TAPS
 
+TAPS = FAST_TAPS  # numba compiles module globals as constants
+CHANNELS = FAST_CHANNELS
 
-@njit(cache=True, inline="always")
-def _add_scaled(dst, w, src):
-    """dst += w * src."""
-    for q in range(dst.shape[0]):
-        dst[q] += w * src[q]
-
-
-@njit(cache=True, inline="always")
-def _add_scaled_product(dst, w, a, b):
-    """dst += w * a * b."""
-    for q in range(dst.shape[0]):
-        dst[q] += w * (a[q] * b[q])
-
-
-@njit(cache=True, inline="always")
-def _ssim_terms(mx, my, exx, eyy, exy, c1, c2):
-    """``(2 mx my + C1, mx^2 + my^2 + C1, 2 sxy + C2, sxx + syy + C2)`` from the blurred moments."""
-    two = np.float32(2.0)
-    return (
-        two * mx * my + c1,
-        mx * mx + my * my + c1,
-        two * (exy - mx * my) + c2,
-        (exx - mx * mx) + (eyy - my * my) + c2,
-    )
+# Every loop below runs over one row's columns with the window's taps unrolled inside it (TAPS and CHANNELS are
+# constants), so LLVM vectorises the columns and keeps the taps' sums in registers. It does so only where every
+# index is provably non-negative (the taps are offsets from a row or column that is), where the row's sum is taken
+# in a loop of its own (a float64 sum across float32 lanes is not reassociated without fastmath) and where the
+# arrays read are C-contiguous 2D or 1D arrays (a slice of a 3D array is not).
 
 
 @njit(parallel=True, cache=True)
-def _forward_kernel(x, y, g, channels, c1, c2, want_grad, row_sums, p_m, p_e, p_c):
-    """x, y: (H, W*C); g: (K,) window. Fills ``row_sums[i]`` with the sum of the SSIM map over output row i and,
+def _forward_kernel(x, y, g, c1, c2, want_grad, row_sums, p_m, p_e, p_c):
+    """x, y: (H, W*C); g: (TAPS,) window. Fills ``row_sums[i]`` with the sum of the SSIM map over output row i and,
     if ``want_grad``, the map's derivatives with respect to x's blurred mean (p_m), x's blurred square (p_e) and
     the blurred product (p_c), each (H-K+1, (W-K+1)*C)."""
     two = np.float32(2.0)
+    zero = np.float32(0.0)
     c1 = np.float32(c1)
     c2 = np.float32(c2)
-    taps = g.shape[0]
-    out_rows = x.shape[0] - taps + 1
+    out_rows = x.shape[0] - TAPS + 1
     width = x.shape[1]
-    out_width = width - (taps - 1) * channels
+    out_width = width - (TAPS - 1) * CHANNELS
     for i in prange(out_rows):
-        v = np.zeros((5, width), np.float32)
-        for t in range(taps):
-            a, b = x[i + t], y[i + t]
-            _add_scaled(v[0], g[t], a)
-            _add_scaled(v[1], g[t], b)
-            _add_scaled_product(v[2], g[t], a, a)
-            _add_scaled_product(v[3], g[t], b, b)
-            _add_scaled_product(v[4], g[t], a, b)
-        h = np.zeros((5, out_width), np.float32)
-        for t in range(taps):
-            lo = t * channels
-            for k in range(5):
-                _add_scaled(h[k], g[t], v[k, lo : lo + out_width])
-        mx, my, exx, eyy, exy = h[0], h[1], h[2], h[3], h[4]
+        # Vertical blur of the five moments x, y, x^2, y^2, xy.
+        v0 = np.empty(width, np.float32)
+        v1 = np.empty(width, np.float32)
+        v2 = np.empty(width, np.float32)
+        v3 = np.empty(width, np.float32)
+        v4 = np.empty(width, np.float32)
+        for q in range(width):
+            s0, s1, s2, s3, s4 = zero, zero, zero, zero, zero
+            for t in range(TAPS):
+                a, b, w = x[i + t, q], y[i + t, q], g[t]
+                s0 += w * a
+                s1 += w * b
+                s2 += w * (a * a)
+                s3 += w * (b * b)
+                s4 += w * (a * b)
+            v0[q], v1[q], v2[q], v3[q], v4[q] = s0, s1, s2, s3, s4
+        # Horizontal blur, the SSIM map and its partial derivatives.
         value = np.empty(out_width, np.float32)
-        if want_grad:
-            for q in range(out_width):
-                a1, a2, b1, b2 = _ssim_terms(mx[q], my[q], exx[q], eyy[q], exy[q], c1, c2)
-                lum = a1 / a2
-                cs = b1 / b2
-                value[q] = lum * cs
-                p_m[i, q] = two * (
-                    cs * (my[q] * a2 - a1 * mx[q]) / (a2 * a2) + lum * (b1 * mx[q] - my[q] * b2) / (b2 * b2)
-                )
+        for q in range(out_width):
+            mx, my, exx, eyy, exy = zero, zero, zero, zero, zero
+            for t in range(TAPS):
+                w, k = g[t], q + t * CHANNELS
+                mx += w * v0[k]
+                my += w * v1[k]
+                exx += w * v2[k]
+                eyy += w * v3[k]
+                exy += w * v4[k]
+            a1 = two * mx * my + c1
+            a2 = mx * mx + my * my + c1
+            b1 = two * (exy - mx * my) + c2
+            b2 = (exx - mx * mx) + (eyy - my * my) + c2
+            lum = a1 / a2
+            cs = b1 / b2
+            value[q] = lum * cs
+            if want_grad:
+                p_m[i, q] = two * (cs * (my * a2 - a1 * mx) / (a2 * a2) + lum * (b1 * mx - my * b2) / (b2 * b2))
                 p_e[i, q] = -lum * b1 / (b2 * b2)
                 p_c[i, q] = two * lum / b2
-        else:
-            for q in range(out_width):
-                a1, a2, b1, b2 = _ssim_terms(mx[q], my[q], exx[q], eyy[q], exy[q], c1, c2)
-                value[q] = (a1 / a2) * (b1 / b2)
         total = 0.0
         for q in range(out_width):
             total += value[q]
         row_sums[i] = total
 
 
+@njit(cache=True, inline="always")
+def _spread_at(q, g, m, e, c, s0, s1, s2):
+    """Column q of the transposed horizontal blur of the three map rows, the taps that fall outside skipped."""
+    zero = np.float32(0.0)
+    a0, a1, a2 = zero, zero, zero
+    for t in range(TAPS):
+        k = q - t * CHANNELS
+        if 0 <= k < m.shape[0]:
+            w = g[t]
+            a0 += w * m[k]
+            a1 += w * e[k]
+            a2 += w * c[k]
+    s0[q], s1[q], s2[q] = a0, a1, a2
+
+
 @njit(parallel=True, cache=True)
-def _backward_kernel(x, y, g, channels, p_m, p_e, p_c, scale, grad_x):
-    """grad_x (H, W*C) = scale * (G^T p_m + 2 x G^T p_e + y G^T p_c), G the valid separable blur."""
+def _backward_kernel(x, y, g, p_m, p_e, p_c, scale, grad_x):
+    """grad_x (H, W*C) = scale * (G^T p_m + 2 x G^T p_e + y G^T p_c), G the valid separable blur: the transposed
+    horizontal blur of each map row, then the transposed vertical blur, each as a gather over the taps."""
     two = np.float32(2.0)
+    zero = np.float32(0.0)
     scale = np.float32(scale)
-    taps = g.shape[0]
     out_rows, out_width = p_m.shape
     rows, width = x.shape
-    spread = np.zeros((3, out_rows, width), np.float32)
+    edge = (TAPS - 1) * CHANNELS
+    sp0 = np.empty((out_rows, width), np.float32)
+    sp1 = np.empty((out_rows, width), np.float32)
+    sp2 = np.empty((out_rows, width), np.float32)
     for o in prange(out_rows):
-        for t in range(taps):
-            lo = t * channels
-            _add_scaled(spread[0, o, lo : lo + out_width], g[t], p_m[o])
-            _add_scaled(spread[1, o, lo : lo + out_width], g[t], p_e[o])
-            _add_scaled(spread[2, o, lo : lo + out_width], g[t], p_c[o])
+        m, e, c = p_m[o], p_e[o], p_c[o]
+        s0, s1, s2 = sp0[o, edge:], sp1[o, edge:], sp2[o, edge:]
+        for q in range(out_width - edge):  # column q + edge, all of whose taps fall inside the map
+            a0, a1, a2 = zero, zero, zero
+            for t in range(TAPS):
+                w, k = g[t], q + (TAPS - 1 - t) * CHANNELS
+                a0 += w * m[k]
+                a1 += w * e[k]
+                a2 += w * c[k]
+            s0[q], s1[q], s2[q] = a0, a1, a2
+        for q in range(min(edge, width)):
+            _spread_at(q, g, m, e, c, sp0[o], sp1[o], sp2[o])
+        for q in range(max(out_width, edge), width):
+            _spread_at(q, g, m, e, c, sp0[o], sp1[o], sp2[o])
     for r in prange(rows):
-        acc = np.zeros((3, width), np.float32)
-        for t in range(max(0, r - out_rows + 1), min(taps, r + 1)):
-            for k in range(3):
-                _add_scaled(acc[k], g[t], spread[k, r - t])
         xr, yr, out = x[r], y[r], grad_x[r]
-        for q in range(width):
-            out[q] = scale * (acc[0, q] + two * xr[q] * acc[1, q] + yr[q] * acc[2, q])
+        if TAPS - 1 <= r < out_rows:  # all taps inside the maps: rows base .. base + TAPS - 1
+            base = r - (TAPS - 1)
+            for q in range(width):
+                a0, a1, a2 = zero, zero, zero
+                for t in range(TAPS):
+                    w, j = g[t], base + TAPS - 1 - t
+                    a0 += w * sp0[j, q]
+                    a1 += w * sp1[j, q]
+                    a2 += w * sp2[j, q]
+                out[q] = scale * (a0 + two * xr[q] * a1 + yr[q] * a2)
+        else:
+            lo, hi = max(0, r - out_rows + 1), min(TAPS, r + 1)
+            for q in range(width):
+                a0, a1, a2 = zero, zero, zero
+                for t in range(lo, hi):
+                    w = g[t]
+                    a0 += w * sp0[r - t, q]
+                    a1 += w * sp1[r - t, q]
+                    a2 += w * sp2[r - t, q]
+                out[q] = scale * (a0 + two * xr[q] * a1 + yr[q] * a2)
 
 
 def _rows(image: Float[Tensor, "C H W"]) -> np.ndarray:
@@ -145,11 +177,11 @@ class _FusedSSIM(torch.autograd.Function):
             for which in grads:  # the SSIM map is symmetric: Y's derivatives are X's with the two swapped
                 maps = [np.empty(out_shape, np.float32) for _ in range(3)]
                 first, second = (x, y) if which == 0 else (y, x)
-                _forward_kernel(first, second, window, channels, c1, c2, True, row_sums, *maps)
+                _forward_kernel(first, second, window, c1, c2, True, row_sums, *maps)
                 partials.append(maps)
             if not grads:
                 unused = np.empty((1, 1), np.float32)
-                _forward_kernel(x, y, window, channels, c1, c2, False, row_sums, unused, unused, unused)
+                _forward_kernel(x, y, window, c1, c2, False, row_sums, unused, unused, unused)
             total += float(row_sums.sum())
             saved.append((x, y, partials))
         ctx.saved = saved
@@ -167,7 +199,7 @@ class _FusedSSIM(torch.autograd.Function):
             for b, (x, y, partials) in enumerate(ctx.saved):
                 first, second = (x, y) if which == 0 else (y, x)
                 maps = partials[ctx.grads.index(which)]
-                _backward_kernel(first, second, ctx.window, channels, *maps, scale, grad[b].view(height, -1).numpy())
+                _backward_kernel(first, second, ctx.window, *maps, scale, grad[b].view(height, -1).numpy())
             out[which] = grad.permute(0, 3, 1, 2)
         ctx.saved = None
         return out[0], out[1], None, None, None
@@ -176,6 +208,6 @@ class _FusedSSIM(torch.autograd.Function):
 def ssim_cpu_fast(
     X: Float[Tensor, "N C H W"], Y: Float[Tensor, "N C H W"], window: Float[np.ndarray, " K"], c1: float, c2: float
 ) -> Tensor:
-    """Mean SSIM of float32 CPU images (H, W >= K) with the 1D ``window``, ``C1 = c1``, ``C2 = c2``; differentiable
-    in whichever inputs require a gradient."""
+    """Mean SSIM of float32 CPU images with :data:`CHANNELS` channels (H, W >= :data:`TAPS`) with the 1D ``window``
+    of :data:`TAPS` taps, ``C1 = c1``, ``C2 = c2``; differentiable in whichever inputs require a gradient."""
     return _FusedSSIM.apply(X, Y, window, c1, c2)
