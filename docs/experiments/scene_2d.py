@@ -4,6 +4,7 @@ photos to score them against. BlueHawaii: the shipped weights and its references
 a LOM scene: its hold-out weights ``outputs/correction-loo/SCENE/best.pt`` and its ``high/`` photos.
 """
 
+import sys
 from pathlib import Path
 from typing import Callable, List, Optional, Tuple
 
@@ -38,3 +39,27 @@ def scene_views(
     else:
         refs = [root / "high" / n for n in names]
     return lows, dm.enhancer.enhance_images(lows), refs, names
+
+
+def score_variants(
+    default_scenes: List[str],
+    default_variants: List[str],
+    variant_views: Callable[[str, List[torch.Tensor], List[torch.Tensor], str], Tuple[str, List[torch.Tensor]]],
+) -> None:
+    """The 2D probes' driver: ``SCENE ... -- VARIANT ...`` from the command line (defaults beside it). For each
+    scene, scores the default enhancement, then each variant's ``(label, enhanced views)`` from
+    ``variant_views(scene, captures, enhanced, variant)``, every one through the scene's exposure step against its
+    normal-light photos (``naka-gs-enhance``'s scoring)."""
+    from naka_gs_plugin.enhance.stages import ExposureStage
+    from naka_gs_plugin.scripts.enhance import score_against
+
+    args = sys.argv[1:]
+    scenes, variants = (args[: args.index("--")], args[args.index("--") + 1 :]) if "--" in args else (args, [])
+    for scene in scenes or default_scenes:
+        lows, base, refs, names = scene_views(scene)
+        print(f"{scene}, default:", flush=True)
+        score_against(ExposureStage().apply_all(base), refs, names)
+        for variant in variants or default_variants:
+            label, out = variant_views(scene, lows, base, variant)
+            print(f"{scene}, {label}:", flush=True)
+            score_against(ExposureStage().apply_all(out), refs, names)

@@ -17,10 +17,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).parents[1]))
-from scene_2d import scene_views  # noqa: E402
-
-from naka_gs_plugin.enhance.stages import ExposureStage  # noqa: E402
-from naka_gs_plugin.scripts.enhance import score_against  # noqa: E402
+from scene_2d import scene_views, score_variants  # noqa: E402
 
 torch.set_grad_enabled(False)
 CODE = 1.0 / (255 * 12.92)  # one 8-bit code of sRGB's linear toe, in linear light
@@ -47,14 +44,10 @@ def floor_subtracted(q: float, sigma: float, cap: float = float("inf")):
     return transform
 
 
-args = sys.argv[1:]
-scenes, variants = (args[: args.index("--")], args[args.index("--") + 1 :]) if "--" in args else (args, ["1:48"])
-for scene in scenes or ["BlueHawaii", "bike"]:
-    lows, base, refs, names = scene_views(scene)
-    print(f"{scene}, default:", flush=True)
-    score_against(ExposureStage().apply_all(base), refs, names)
-    for variant in variants:
-        q, sigma, *cap = (float(v) for v in variant.split(":"))
-        print(f"{scene}, floor at percentile {q:g} over {sigma:g} px subtracted (at most {cap} codes):", flush=True)
-        _, out, _, _ = scene_views(scene, transform=floor_subtracted(q, sigma, *cap))
-        score_against(ExposureStage().apply_all(out), refs, names)
+def variant_views(scene, lows, base, variant):
+    q, sigma, *cap = (float(v) for v in variant.split(":"))
+    _, out, _, _ = scene_views(scene, transform=floor_subtracted(q, sigma, *cap))
+    return f"floor at percentile {q:g} over {sigma:g} px subtracted (at most {cap} codes)", out
+
+
+score_variants(["BlueHawaii", "bike"], ["1:48"], variant_views)

@@ -15,20 +15,16 @@ import torch
 sys.path.insert(0, str(Path(__file__).parent))
 sys.path.insert(0, str(Path(__file__).parents[1]))
 from levers_2d import wide_chroma, with_chroma  # noqa: E402
-from scene_2d import scene_views  # noqa: E402
-
-from naka_gs_plugin.enhance.stages import ExposureStage  # noqa: E402
-from naka_gs_plugin.scripts.enhance import score_against  # noqa: E402
+from scene_2d import score_variants  # noqa: E402
 
 torch.set_grad_enabled(False)
-args = sys.argv[1:]
-scenes, variants = (args[: args.index("--")], args[args.index("--") + 1 :]) if "--" in args else (args, ["48:4"])
-for scene in scenes or ["BlueHawaii", "chair"]:
-    lows, base, refs, names = scene_views(scene)
-    print(f"{scene}, default:", flush=True)
-    score_against(ExposureStage().apply_all(base), refs, names)
-    for variant in variants:
-        sigma, codes = (float(v) for v in variant.split(":"))
-        out = [with_chroma(i, wide_chroma(lo, sigma, codes)) for i, lo in zip(base, lows)]
-        print(f"{scene}, wide chroma {sigma:g} px below {codes:g} codes:", flush=True)
-        score_against(ExposureStage().apply_all(out), refs, names)
+
+
+def variant_views(scene, lows, base, variant):
+    sigma, codes = (float(v) for v in variant.split(":"))
+    return f"wide chroma {sigma:g} px below {codes:g} codes", [
+        with_chroma(i, wide_chroma(lo, sigma, codes)) for i, lo in zip(base, lows)
+    ]
+
+
+score_variants(["BlueHawaii", "chair"], ["48:4"], variant_views)
