@@ -330,6 +330,9 @@ def _forward_kernel(
     tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
     n_dim = records.shape[1] - REC_COLORS
     store_vis = vis_store.shape[0] >= vis_start[-1]
+    # RGB (the training case) composites three scalars held in registers; the generic loop over
+    # n_dim re-reads the record per pixel. Same sums in the same order: bitwise the generic result.
+    rgb = n_dim == 3
     out = np.zeros((n_cams * height * width, n_dim), dtype=records.dtype)
     t_final = np.ones(n_cams * height * width, dtype=np.float64)
     last = np.zeros(n_cams * height * width, dtype=np.int32)
@@ -347,6 +350,9 @@ def _forward_kernel(
         for k in range(s, e):
             rec = records[k]
             mx, my, a, b, c, opacity = rec[0], rec[1], rec[2], rec[3], rec[4], rec[5]
+            c0 = np.float64(rec[REC_COLORS])
+            c1 = np.float64(rec[REC_COLORS + min(1, n_dim - 1)])
+            c2 = np.float64(rec[REC_COLORS + min(2, n_dim - 1)])
             by0, by1 = max(np.int64(rec[8]), y0), min(np.int64(rec[9]), y1 - 1)
             pos = vis_start[k]
             for py in range(by0, by1 + 1):
@@ -372,8 +378,13 @@ def _forward_kernel(
                         alive -= 1
                         continue
                     weight = np.float64(alpha) * trans[i]
-                    for d in range(n_dim):
-                        acc[i, d] += weight * rec[REC_COLORS + d]
+                    if rgb:
+                        acc[i, 0] += weight * c0
+                        acc[i, 1] += weight * c1
+                        acc[i, 2] += weight * c2
+                    else:
+                        for d in range(n_dim):
+                            acc[i, d] += weight * rec[REC_COLORS + d]
                     trans[i] = t_next
                     last_local[i] = k - s + 1
             if alive == 0:
