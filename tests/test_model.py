@@ -298,3 +298,22 @@ def test_the_psnr_is_torchmetrics_value_outside_autograd(frames):
     with torch.no_grad():
         image_metrics, _ = model.get_image_metrics_and_images(model.get_outputs(cameras[0:1]), {"image": images[0]})
     assert math.isfinite(image_metrics["psnr"])
+
+
+def test_downscaled_target_is_upstreams_kept_per_image_and_renewed_when_it_changes():
+    model, _, _ = _model()
+    model.train()
+    model.step = 0  # the schedule's first phase: 1/4 size
+    g = torch.Generator().manual_seed(5)
+    image = torch.rand(48, 64, 3, generator=g)
+    first = model.get_gt_img(image)
+    assert torch.equal(first, SplatfactoModel.get_gt_img(model, image)) and first.shape == (12, 16, 3)
+    assert model.get_gt_img(image) is first  # the loss and the metrics of a step share one copy
+    image.mul_(0.5)  # changed in place: computed again
+    assert torch.equal(model.get_gt_img(image), SplatfactoModel.get_gt_img(model, image))
+    eight_bit = (image * 255).to(torch.uint8)
+    assert torch.equal(model.get_gt_img(eight_bit), SplatfactoModel.get_gt_img(model, eight_bit))
+    del eight_bit
+    assert len(model._downscaled_gt) == 1  # dropped with its image
+    model.step = model.config.resolution_schedule * model.config.num_downscales  # full size
+    assert model.get_gt_img(image) is image and not model._downscaled_gt

@@ -32,6 +32,8 @@ from pathlib import Path
 from typing import Dict, List, Literal, Optional, Type, Union
 from unittest import mock
 
+import weakref
+
 import torch
 from jaxtyping import Float
 from nerfstudio.cameras.cameras import Cameras
@@ -150,6 +152,7 @@ class NakaGSModel(SplatfactoModel):
         # Splatfacto's SSIM module, with compiled kernels for CPU images (the same loss and metric).
         self.ssim = SSIMLoss(data_range=1.0, size_average=True, channel=3)
         self.psnr = PairPSNR()
+        self._downscaled_gt: Dict[int, tuple] = {}
         if seed_rgb is not None:
             self.seed_points = (self.seed_points[0], seed_rgb)
             rgb = seed_rgb.float() / 255.0
@@ -301,6 +304,29 @@ class NakaGSModel(SplatfactoModel):
         if background.shape[0] == 3 and not self.training:
             background = background.expand(H, W, 3)
         return {"rgb": rgb.squeeze(0), "depth": depth_im, "accumulation": alpha.squeeze(0), "background": background}
+
+    # ------------------------------------------------------------------ training images
+    def get_gt_img(self, image: Tensor) -> Tensor:
+        """Splatfacto's target image at the step's scale, kept per training image while the scale is below 1.
+
+        Upstream box-filters the full-size image on every call (a strided conv2d, twice a step: loss and
+        metrics), which costs a CPU step as much as the rest of its loss at 1/2 size. The images are the
+        datamanager's cached tensors, so each downscaled copy is computed once per image and scale, bit for bit
+        upstream's; an entry is recomputed when its image was changed in place and dropped with its image.
+        """
+        d = self._get_downscale_factor()
+        if d == 1:
+            if self.training:
+                self._downscaled_gt.clear()  # full size from here on
+            return super().get_gt_img(image)
+        key = id(image)
+        entry = self._downscaled_gt.get(key)
+        if entry is not None and entry[0]() is image and entry[1:3] == (image._version, d):
+            return entry[3]
+        out = super().get_gt_img(image)
+        ref = weakref.ref(image, lambda _, cache=self._downscaled_gt, key=key: cache.pop(key, None))
+        self._downscaled_gt[key] = (ref, image._version, d, out)
+        return out
 
     # ------------------------------------------------------------------ safety and metrics
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, Tensor]:
