@@ -21,18 +21,19 @@ stock splatfacto breaks on a CPU-only or offline machine:
   offset per training view, applied to its render in training only (after splatfacto's bilateral grid
   would be); ``get_param_groups`` adds their group. The render's compositing onto the background and
   that appearance run as one compiled pass on a CPU (:mod:`naka_gs_plugin.model.composite`).
+- ``get_gt_img``: the training target at a downscaled step's size is kept per image and scale (upstream
+  box-filters the full-size image again twice a step), the same bits.
 - training safety: a non-finite loss or parameter stops training with a clear message before
   anything non-finite can reach a checkpoint.
 """
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Literal, Optional, Type, Union
 from unittest import mock
-
-import weakref
 
 import torch
 from jaxtyping import Float
@@ -310,9 +311,9 @@ class NakaGSModel(SplatfactoModel):
         """Splatfacto's target image at the step's scale, kept per training image while the scale is below 1.
 
         Upstream box-filters the full-size image on every call (a strided conv2d, twice a step: loss and
-        metrics), which costs a CPU step as much as the rest of its loss at 1/2 size. The images are the
-        datamanager's cached tensors, so each downscaled copy is computed once per image and scale, bit for bit
-        upstream's; an entry is recomputed when its image was changed in place and dropped with its image.
+        metrics; on a CPU a sizeable part of a downscaled step, docs/cpu.md). The images are the datamanager's
+        cached tensors, so each downscaled copy is computed once per image and scale, bit for bit upstream's; an
+        entry is recomputed when its image was changed in place and dropped with its image.
         """
         d = self._get_downscale_factor()
         if d == 1:
