@@ -10,6 +10,7 @@
   runtime it shares with PyTorch (hence PyTorch's thread count) to numba's; every caller of numba kernels
   keeps PyTorch's count with it.
 - :func:`numba_fast_path`: a compiled fast path, or None where numba does not import.
+- :func:`untraced`: Python tracing suspended around compiled calls, as around a C extension's.
 - :func:`keep_freed_memory`: glibc's allocator thresholds for training, whose every step allocates and
   frees the same multi-megabyte tensors (:func:`glibc`: the C library's allocator calls, if glibc).
 """
@@ -21,6 +22,7 @@ import functools
 import importlib
 import math
 import os
+import sys
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator, Optional, Tuple
@@ -122,6 +124,26 @@ def torch_threads_kept() -> Iterator[None]:
     finally:
         if torch.get_num_threads() != threads:
             torch.set_num_threads(threads)
+
+
+@contextmanager
+def untraced() -> Iterator[None]:
+    """Python tracing (``sys.settrace``) suspended in this thread for the block, as over a C extension's call.
+
+    numba's dispatcher runs Python helpers (``numba.core.serialize._numba_unpickle``) at every compiled call;
+    an exception a trace function raises there comes out as ``SystemError`` instead of itself. nerfstudio's
+    viewer interrupts a stale render exactly so (``SetTrace(check_interrupt)`` raises ``IOChangeException`` at
+    the next traced line) and catches only its own exception: the ``SystemError`` killed its render thread.
+    With the block untraced, the interrupt lands on the first line after it."""
+    trace = sys.gettrace()
+    if trace is None:
+        yield
+        return
+    sys.settrace(None)
+    try:
+        yield
+    finally:
+        sys.settrace(trace)
 
 
 def keep_freed_memory() -> bool:

@@ -83,3 +83,32 @@ def test_keep_freed_memory_reports_a_refused_value(monkeypatch):
     libc.mallopt = lambda param, value: 0  # glibc refuses a value out of range
     monkeypatch.setattr(cpu.ctypes, "CDLL", lambda name: libc)
     assert not cpu.keep_freed_memory()
+
+
+def test_untraced_suspends_this_threads_trace_and_restores_it():
+    import sys
+
+    lines = []
+
+    def trace(frame, event, arg):
+        if event == "line":
+            lines.append(frame.f_code.co_name)
+        return trace
+
+    def probe():
+        return 1
+
+    sys.settrace(trace)
+    try:
+        with cpu.untraced():
+            inside = sys.gettrace()
+            probe()
+        after = sys.gettrace()
+        probe()
+    finally:
+        sys.settrace(None)
+    assert inside is None and after is trace
+    assert lines.count("probe") == 1  # traced after the block only
+    with cpu.untraced():
+        assert sys.gettrace() is None
+    assert sys.gettrace() is None

@@ -317,3 +317,40 @@ def test_downscaled_target_is_upstreams_kept_per_image_and_renewed_when_it_chang
     assert len(model._downscaled_gt) == 1  # dropped with its image
     model.step = model.config.resolution_schedule * model.config.num_downscales  # full size
     assert model.get_gt_img(image) is image and not model._downscaled_gt
+
+
+def test_a_viewer_interrupt_never_lands_inside_numbas_dispatch(frames):
+    """nerfstudio's viewer cancels a render by raising IOChangeException from a trace function at the next traced
+    line; raised in the Python helpers numba's dispatcher runs, it came out as SystemError and killed the viewer's
+    render thread. Here it is raised at any line in numba's code: renders and a training step go through."""
+    import os
+    import sys
+
+    from nerfstudio.viewer_legacy.server.viewer_utils import IOChangeException, SetTrace
+
+    cameras, images = frames
+    model, _, _ = _model()
+    model.step, model.optimizers = 0, {}
+    numba_lines = []
+
+    def interrupt_in_numba(frame, event, arg):
+        if event == "line" and f"{os.sep}numba{os.sep}" in frame.f_code.co_filename:
+            numba_lines.append(frame.f_code.co_name)
+            raise IOChangeException
+        return interrupt_in_numba
+
+    results = []
+    for trace in (None, interrupt_in_numba):  # untraced first: every kernel imported and compiled
+        model.eval()
+        with SetTrace(trace), torch.no_grad():
+            rendered = model.get_outputs(cameras[0:1])["rgb"]
+        model.train()
+        model.zero_grad()
+        torch.manual_seed(0)  # splatfacto's training background is random
+        with SetTrace(trace):
+            loss = model.get_loss_dict(model.get_outputs(cameras[0:1]), {"image": images[0]})["main_loss"]
+            loss.backward()
+        results.append((rendered, loss.detach(), model.means.grad.clone()))
+    assert sys.gettrace() is None and numba_lines == []
+    for untraced, traced in zip(*results):
+        torch.testing.assert_close(traced, untraced, rtol=0, atol=0)

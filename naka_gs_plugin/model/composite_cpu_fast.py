@@ -20,7 +20,7 @@ from jaxtyping import Float
 from numba import njit, prange
 from torch import Tensor
 
-from naka_gs_plugin.cpu import torch_threads_kept
+from naka_gs_plugin.cpu import torch_threads_kept, untraced
 
 
 @njit(cache=True, inline="always")
@@ -93,6 +93,7 @@ def _rows(t: Tensor) -> np.ndarray:
 
 class _Composite(torch.autograd.Function):
     @staticmethod
+    @untraced()
     def forward(ctx, render: Tensor, alpha: Tensor, background: Tensor, gain: Tensor, offset: Tensor, appearance: bool):
         out = torch.empty(render.shape, dtype=torch.float32)
         _forward_kernel(
@@ -104,6 +105,7 @@ class _Composite(torch.autograd.Function):
         return out
 
     @staticmethod
+    @untraced()
     def backward(ctx, grad_out: Tensor):
         render, alpha, background, gain, offset = ctx.saved_tensors
         grad_out = grad_out.contiguous()

@@ -30,6 +30,7 @@ from jaxtyping import Float
 from numba import njit, prange
 from torch import Tensor
 
+from naka_gs_plugin.cpu import untraced
 from naka_gs_plugin.model import projection as reference
 from naka_gs_plugin.model.projection import (
     JACOBIAN_FOV_MARGIN,
@@ -499,6 +500,7 @@ class _ProjectFn(torch.autograd.Function):
     """Numba EWA projection; outputs radii, means2d, depths, conics, compensations ([0, N] if off)."""
 
     @staticmethod
+    @untraced()
     def forward(ctx, means, quats, scales, viewmats, Ks, width, height, eps2d, near_plane, far_plane, calc_comp):
         n_cams, n = viewmats.shape[0], means.shape[0]
         dtype = means.dtype
@@ -519,6 +521,7 @@ class _ProjectFn(torch.autograd.Function):
         return radii, means2d, depths, conics, comps
 
     @staticmethod
+    @untraced()
     def backward(ctx, _g_radii, g_means2d, g_depths, g_conics, g_comps):
         means, quats, scales, radii = ctx.saved_tensors
         width, height, eps2d, calc_comp = ctx.consts
@@ -535,6 +538,7 @@ class _SHFn(torch.autograd.Function):
     """Numba SH colours ``max(SH + 0.5, 0)`` per camera from coefficients [1 or C, N, K, 3]."""
 
     @staticmethod
+    @untraced()
     def forward(ctx, means, coeffs, centres, degree):
         out = torch.empty(centres.shape[0], means.shape[0], 3, dtype=coeffs.dtype)
         _sh_forward(_np(means), _np(coeffs), _np(centres), degree, out.numpy())
@@ -543,6 +547,7 @@ class _SHFn(torch.autograd.Function):
         return out
 
     @staticmethod
+    @untraced()
     def backward(ctx, g_out):
         means, coeffs, centres = ctx.saved_tensors
         g_means = torch.empty(means.shape, dtype=means.dtype)

@@ -51,7 +51,7 @@ from numba import njit, prange
 from rich.console import Console
 from torch import Tensor
 
-from naka_gs_plugin.cpu import torch_threads_kept
+from naka_gs_plugin.cpu import torch_threads_kept, untraced
 from naka_gs_plugin.model.project_cpu_fast import (
     _project_backward,
     _project_forward,
@@ -667,6 +667,7 @@ class _TileComposite(torch.autograd.Function):
     """Front-to-back compositing over the tile lists; hand-written backward (see module docstring)."""
 
     @staticmethod
+    @untraced()
     def forward(
         ctx,
         means2d: Tensor,
@@ -736,6 +737,7 @@ class _TileComposite(torch.autograd.Function):
         return out.reshape(n_cams, height, width, dim), (1.0 - t_final_t).reshape(n_cams, height, width, 1)
 
     @staticmethod
+    @untraced()
     def backward(ctx, grad_colors: Tensor, grad_alphas: Tensor):
         means2d, backgrounds = ctx.saved_tensors
         n_cams, n, dim, absgrad = ctx.meta

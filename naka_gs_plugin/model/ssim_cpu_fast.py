@@ -20,6 +20,7 @@ from jaxtyping import Float
 from numba import njit, prange
 from torch import Tensor
 
+from naka_gs_plugin.cpu import untraced
 from naka_gs_plugin.model.ssim import FAST_CHANNELS, FAST_TAPS
 
 TAPS = FAST_TAPS  # numba compiles module globals as constants
@@ -163,6 +164,7 @@ def _rows(image: Float[Tensor, "C H W"]) -> np.ndarray:
 
 class _FusedSSIM(torch.autograd.Function):
     @staticmethod
+    @untraced()
     def forward(ctx, X: Tensor, Y: Tensor, window: np.ndarray, c1: float, c2: float) -> Tensor:
         n, channels, height, width = X.shape
         taps = window.shape[0]
@@ -190,6 +192,7 @@ class _FusedSSIM(torch.autograd.Function):
         return X.new_tensor(total / ctx.count)
 
     @staticmethod
+    @untraced()
     def backward(ctx, grad_output: Tensor):
         n, channels, height, width = ctx.shape
         scale = float(grad_output) / ctx.count
