@@ -8,7 +8,9 @@ from naka_gs_plugin.enhance.exposure import (
     KNEE,
     MAX_GAIN,
     METERED_TARGET,
+    _gain,
     _linear,
+    _luminance,
     apply_gain,
     lift_gain,
     metered_level,
@@ -132,3 +134,23 @@ def test_enhancer_lifts_a_dark_scene_and_none_keeps_the_network_exposure():
     expected = apply_gain(plain, lifter.last_run["exposure_gain"])
     for p, q in zip(expected, lifted):
         assert_close(q, p, atol=2e-5, rtol=0)
+
+
+def test_lift_gain_is_the_bisection_of_the_metered_level_of_apply_gain():
+    # The readable definition: bisect the gain on the metering of `_gain`'s sRGB output of the sampled pixels.
+    # The fast path meters sorted linear values (the part below the knee as one sum); scenes with bright
+    # highlights put many pixels through the shoulder at the gains the bisection tries.
+    g = torch.Generator().manual_seed(3)
+    for mean, highlights in ((0.15, 0.0), (0.2, 0.1), (0.25, 0.2)):
+        views = _views(mean, seed=int(100 * mean))
+        for view in views:  # sRGB 0.75: linear 0.52, past the knee at gains above 1.5
+            view[torch.rand(view.shape[:2], generator=g) < highlights] = 0.75
+        sample = torch.cat([v.reshape(-1, 3)[::7] for v in views]).double().clamp(0, 1)
+        goal = float(_linear(torch.full((1, 3), METERED_TARGET))[0, 0])
+        lo, hi = 1.0, MAX_GAIN
+        for _ in range(40):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if _luminance(_gain(sample, mid)) < goal else (lo, mid)
+        expected = 0.5 * (lo + hi)
+        assert 1.0 < expected < MAX_GAIN
+        assert lift_gain(views) == pytest.approx(expected, rel=1e-9)

@@ -91,12 +91,26 @@ def lift_gain(images: Sequence[Float[Tensor, "H W 3"]], target: float = METERED_
     sample = _sample(images, stride)
     if sample.numel() == 0 or _luminance(sample) >= goal:
         return 1.0
+    # Each channel's linear values sorted once, with prefix sums: at a gain the pixels below the knee meter as
+    # that gain times their sum, and only those above it go through the shoulder. The same metering as
+    # ``_luminance(_gain(sample, gain))`` up to float64 rounding (that one decodes its own sRGB encoding again).
+    linear = _linear(sample)
+    channels = [linear[:, c].sort().values for c in range(3)]
+    prefix = [torch.cat([v.new_zeros(1), v.cumsum(0)]) for v in channels]
+
+    def metered(gain: float) -> float:
+        total = 0.0
+        for weight, values, sums in zip(LUMA, channels, prefix):
+            below = int(torch.searchsorted(values, KNEE / gain, right=True))
+            total += weight * (gain * float(sums[below]) + float(_shoulder(values[below:] * gain).sum()))
+        return total / len(linear)
+
     weakest, strongest = 1.0, MAX_GAIN
-    if _luminance(_gain(sample, strongest)) <= goal:
+    if metered(strongest) <= goal:
         return strongest
     for _ in range(40):
         mid = 0.5 * (weakest + strongest)
-        if _luminance(_gain(sample, mid)) < goal:
+        if metered(mid) < goal:
             weakest = mid
         else:
             strongest = mid
