@@ -88,13 +88,12 @@ def lift_gain(images: Sequence[Float[Tensor, "H W 3"]], target: float = METERED_
     if not 0.0 < target < 1.0:
         raise ValueError(f"exposure target must be in (0, 1), got {target!r}")
     goal = float(_linear(torch.full((1, 3), target))[0, 0])
-    sample = _sample(images, stride)
-    if sample.numel() == 0 or _luminance(sample) >= goal:
+    linear = _linear(_sample(images, stride))
+    if linear.numel() == 0 or float((linear @ linear.new_tensor(LUMA)).mean()) >= goal:  # ``_luminance`` of the sample
         return 1.0
     # Each channel's linear values sorted once, with prefix sums: at a gain the pixels below the knee meter as
     # that gain times their sum, and only those above it go through the shoulder. The same metering as
     # ``_luminance(_gain(sample, gain))`` up to float64 rounding (that one decodes its own sRGB encoding again).
-    linear = _linear(sample)
     channels = [linear[:, c].sort().values for c in range(3)]
     prefix = [torch.cat([v.new_zeros(1), v.cumsum(0)]) for v in channels]
 
