@@ -127,6 +127,17 @@ def test_checkpoint_round_trip(tmp_path):
     assert (half(low, naka)["enhanced"] - want).abs().max() < 1e-2
 
 
+def test_loading_a_checkpoint_leaves_torchs_random_state_alone(tmp_path):
+    """The network's random initialisation is overwritten by the weights: a run whose enhancement is computed
+    (loading the network) must draw the same random numbers afterwards as one that finds it in the cache."""
+    path = save_correction(_net(MID), tmp_path / "net.pt")
+    torch.manual_seed(3)
+    load_correction(path)
+    after_loading = torch.rand(4)
+    torch.manual_seed(3)
+    assert torch.equal(torch.rand(4), after_loading)
+
+
 def test_wrong_checkpoints_are_rejected_naming_the_file(tmp_path):
     path = save_correction(_net(SMALL), tmp_path / "small.pt")
     ckpt = torch.load(path, weights_only=True)

@@ -272,7 +272,8 @@ def _toy_trainer(scene: Path, out: Path, steps: int, **config) -> NakaGSTrainer:
     cfg.pipeline.datamanager.data = scene
     cfg.pipeline.model.num_random = 500
     settings = dict(output_dir=out, timestamp="run", vis="tensorboard", max_num_iterations=steps, steps_per_save=steps,
-                    steps_per_eval_image=10**9, steps_per_eval_all_images=10**9, **config)  # fmt: skip
+                    steps_per_eval_image=10**9, steps_per_eval_all_images=10**9)  # fmt: skip
+    settings.update(config)
     for key, value in settings.items():
         setattr(cfg, key, value)
     trainer = cfg.setup(local_rank=0, world_size=1)
@@ -295,3 +296,18 @@ def test_a_resumed_run_keeps_optimizing_its_gaussians_with_their_adam_state(toy_
     before = model.means.detach().clone()
     resumed.train()
     assert not torch.equal(model.means.detach(), before), "the resumed step left the Gaussians where they were"
+
+
+def test_evaluating_during_training_does_not_change_what_is_trained(toy_scene, tmp_path):
+    """The evaluation cadence is a time lever only: seeded as ``ns-train`` seeds, the same Gaussians bit for
+    bit whether the test views are rendered and scored every step or never."""
+    from nerfstudio.scripts.train import _set_random_seed
+
+    trained = []
+    for name, cadence in (("watched", dict(steps_per_eval_image=1, steps_per_eval_all_images=4)), ("unwatched", {})):
+        _set_random_seed(42)
+        trainer = _toy_trainer(toy_scene, tmp_path / name, 12, **cadence)
+        trainer.train()
+        trained.append(trainer.pipeline.model.gauss_params)
+    for name, param in trained[0].items():
+        torch.testing.assert_close(param, trained[1][name], rtol=0, atol=0)

@@ -139,7 +139,7 @@ def load_correction(path: Union[str, Path]) -> ChromaGuided:
     """A :class:`ChromaGuided` in eval mode, float32, from our checkpoint or the authors' (see module doc).
 
     Raises :class:`CorrectionWeightsNotFoundError` (a ``FileNotFoundError``) or :class:`CorrectionWeightsError`
-    (a ``ValueError``) with a one-line message naming ``path``.
+    (a ``ValueError``) with a one-line message naming ``path``. Leaves torch's random state as it found it.
     """
     path = Path(path)
     if not path.is_file():
@@ -168,7 +168,10 @@ def load_correction(path: Union[str, Path]) -> ChromaGuided:
             config = ChromaGuidedConfig.from_dict(ckpt["config"])
         else:
             raise ValueError("it has our key layout but no 'config' dict; save it with save_correction")
-        net = ChromaGuided(config)
+        # Its random initialisation is overwritten: leave torch's random state as it was, so that a run whose
+        # enhancement is computed trains as one that finds it in the cache.
+        with torch.random.fork_rng(devices=[]):
+            net = ChromaGuided(config)
         incompatible = net.load_state_dict(
             {k: v.float() if v.is_floating_point() else v for k, v in state.items()}, strict=False
         )
