@@ -38,6 +38,13 @@ FAST_STEPS, FAST_DECAY_STEPS = (7000, 10000) if CUDA else (3000, 4300)
 shrunk to 3k of 4.3k steps (docs/real-scenes.md, "Presets")."""
 
 
+EVAL_IMAGE_STEPS = 100 if CUDA else 500
+"""Steps between the evaluations of one test view during training (logged to tensorboard, wandb or comet; the
+viewer shows none): splatfacto's on a GPU. On a CPU a test view's full-size render and its PSNR / SSIM / LPIPS
+cost several training steps and training does not depend on them (``tests/test_trainer_safety.py``), so they
+run less often, and all test views are evaluated once, half way (docs/cpu.md, "Evaluating during training")."""
+
+
 def cpu_schedule(decay_steps: int) -> dict:
     """Splatfacto's densification, SH and resolution schedule compressed to a ``decay_steps`` learning-rate
     schedule, as fractions of it: warm-up 3 %, screen-size splits until 33 %, densification during the
@@ -103,10 +110,10 @@ def _method(name: str, steps: int, decay_steps: int, schedule: dict, description
             # NakaGSTrainer: atomic checkpoints, Ctrl-C / SIGTERM save the current step, resume skips corrupt
             # checkpoints; the config: run folders are never overwritten, ns-eval & co. load their own folder's.
             method_name=name,
-            steps_per_eval_image=100,
+            steps_per_eval_image=EVAL_IMAGE_STEPS,
             steps_per_eval_batch=0,
             steps_per_save=2000,
-            steps_per_eval_all_images=1000,
+            steps_per_eval_all_images=1000 if CUDA else steps // 2,
             max_num_iterations=steps,
             mixed_precision=False,
             # nerfstudio defaults to "cuda", which dies on machines without one.
