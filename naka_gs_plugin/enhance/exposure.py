@@ -53,9 +53,14 @@ def _linear(srgb: Float[Tensor, "*batch 3"]) -> Float[Tensor, "*batch 3"]:
     return kornia.color.rgb_to_linear_rgb(as_image)[:, :, 0].T.reshape(srgb.shape)
 
 
+def _linear_luminance(linear: Float[Tensor, "N 3"]) -> float:
+    """Mean luminance of linear RGB pixels."""
+    return float((linear @ linear.new_tensor(LUMA)).mean())
+
+
 def _luminance(srgb: Float[Tensor, "N 3"]) -> float:
     """Mean linear luminance of sRGB pixels."""
-    return float((_linear(srgb) @ srgb.new_tensor(LUMA)).mean())
+    return _linear_luminance(_linear(srgb))
 
 
 def _srgb(linear: Float[Tensor, "*batch 3"]) -> Float[Tensor, "*batch 3"]:
@@ -74,7 +79,7 @@ def _encode(linear: float) -> float:
 def metered_level(images: Sequence[Float[Tensor, "H W 3"]]) -> float:
     """The scene's exposure as a camera's average metering reads it: the sRGB encoding of the mean Rec. 709
     luminance in linear light, in [0, 1]."""
-    return _encode(_luminance(torch.cat([im.reshape(-1, 3) for im in images]).double().clamp(0.0, 1.0)))
+    return _encode(_luminance(_sample(images, 1)))
 
 
 def _sample(images: Sequence[Float[Tensor, "H W 3"]], stride: int) -> Float[Tensor, "N 3"]:
@@ -89,7 +94,7 @@ def lift_gain(images: Sequence[Float[Tensor, "H W 3"]], target: float = METERED_
         raise ValueError(f"exposure target must be in (0, 1), got {target!r}")
     goal = float(_linear(torch.full((1, 3), target))[0, 0])
     linear = _linear(_sample(images, stride))
-    if linear.numel() == 0 or float((linear @ linear.new_tensor(LUMA)).mean()) >= goal:  # ``_luminance`` of the sample
+    if linear.numel() == 0 or _linear_luminance(linear) >= goal:
         return 1.0
     # Each channel's linear values sorted once, with prefix sums: at a gain the pixels below the knee meter as
     # that gain times their sum, and only those above it go through the shoulder. The same metering as
