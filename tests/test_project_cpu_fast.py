@@ -46,6 +46,8 @@ def test_projection_matches_reference_float64(calc_comp):
     scene["scales"][13:15] = 0.5
     scene["quats"][15] = torch.tensor([1e-13, 0.0, 0.0, 0.0], dtype=F64)  # below F.normalize's eps
     weights = torch.randn(3, 300, 7, generator=torch.Generator().manual_seed(3), dtype=F64)
+    weights[0, 40:60] = 0.0  # visible in camera 0 but no gradient from it (composited by no pixel)
+    weights[:, 60:80] = 0.0  # from no camera
     p_fast, g_fast = _project(fast.project_gaussians, scene, calc_comp, weights)
     p_ref, g_ref = _project(ref.project_gaussians, scene, calc_comp, weights)
     assert torch.equal(p_fast.radii, p_ref.radii)
@@ -59,6 +61,9 @@ def test_projection_matches_reference_float64(calc_comp):
         assert _close(g_fast[name], g_ref[name], 1e-8), name
     culled = (p_ref.radii == 0).all(0)
     assert (g_fast["means"][culled] == 0).all() and (g_fast["quats"][culled] == 0).all()
+    assert (p_ref.radii[0, 40:80] > 0).sum() > 20 and (g_ref["scales"][40:60] != 0).any()
+    for name in ("means", "quats", "scales"):
+        assert (g_fast[name][60:80] == 0).all(), name
 
 
 def test_projection_float32_is_the_float64_reference_rounded():
@@ -88,6 +93,8 @@ def test_sh_colors_match_reference_float64(degree, per_camera):
     shape = (n_cams, n, 16, 3) if per_camera else (n, 16, 3)
     coeffs = 2.0 * torch.randn(shape, generator=gen, dtype=F64)  # large enough for the clamp at 0
     weights = torch.randn(n_cams, n, 3, generator=gen, dtype=F64)
+    weights[0, 5:40] = 0.0  # Gaussians camera 0 does not composite: no colour gradient from it
+    weights[:, 40:60] = 0.0  # nor from any camera
     results = []
     for fn in (fast.sh_colors, ref.sh_colors):
         m, c = means.clone().requires_grad_(), coeffs.clone().requires_grad_()
@@ -100,10 +107,12 @@ def test_sh_colors_match_reference_float64(degree, per_camera):
     assert _close(o_f, o_r, 1e-12)
     assert _close(c_f, c_r, 1e-10)
     assert (c_f[..., (degree + 1) ** 2 :, :] == 0).all()
+    assert (c_f[..., 40:60, :, :] == 0).all() and c_f[..., 5:40, :, :].abs().max() > 0
     if degree == 0:
         assert m_f is None and m_r is None  # degree 0 does not depend on the direction
     else:
         assert m_r.abs().max() > 0 and _close(m_f, m_r, 1e-8)
+        assert (m_f[40:60] == 0).all()
 
 
 def test_camera_gradients_defer_to_the_reference():

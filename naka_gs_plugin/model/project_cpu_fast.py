@@ -439,44 +439,59 @@ def _sh_forward(means, coeffs, centres, degree, out):
             for c in range(n_cams):
                 dirn, _ = _sh_dir(means, centres, n, c, degree)
                 _sh_bases(degree, dirn[0], dirn[1], dirn[2], bases)
-                cc = c if coeffs.shape[0] > 1 else 0
-                for ch in range(3):
-                    acc = 0.0
-                    for k in range(n_bases):
-                        acc += bases[k] * coeffs[cc, n, k, ch]
-                    out[c, n, ch] = max(acc + 0.5, 0.0)
+                coef = coeffs[c if coeffs.shape[0] > 1 else 0, n]
+                s0 = s1 = s2 = 0.0
+                for k in range(n_bases):  # the three channels in one pass, each summed in the order of k
+                    s0 += bases[k] * coef[k, 0]
+                    s1 += bases[k] * coef[k, 1]
+                    s2 += bases[k] * coef[k, 2]
+                out[c, n, 0], out[c, n, 1], out[c, n, 2] = max(s0 + 0.5, 0.0), max(s1 + 0.5, 0.0), max(s2 + 0.5, 0.0)
 
 
 @njit(parallel=True, cache=True)
 def _sh_backward(means, coeffs, centres, degree, g_out, g_means, g_coeffs):
     """Write the gradients of :func:`_sh_forward` w.r.t. means [N,3] and coeffs [1 or C, N, K, 3]
-    (in their dtype; coefficients beyond the degree get zeros)."""
+    (in their dtype; coefficients beyond the degree get zeros). A camera whose ``g_out`` row is zero
+    (a Gaussian it does not composite) is skipped: all its terms are +0, so the sums are the same
+    bits (only non-finite coefficients, whose product with 0 torch would turn into NaN, differ)."""
     n_gauss, n_cams = means.shape[0], centres.shape[0]
     n_bases = (degree + 1) ** 2
+    shared = coeffs.shape[0] == 1
     for chunk in prange((n_gauss + _CHUNK - 1) // _CHUNK):
         bases = np.empty(16)
         g_bases = np.empty(16)
         for n in range(chunk * _CHUNK, min((chunk + 1) * _CHUNK, n_gauss)):
-            for cc in range(coeffs.shape[0]):
-                for k in range(coeffs.shape[2]):
-                    for ch in range(3):
-                        g_coeffs[cc, n, k, ch] = 0.0
+            g_coeffs[:, n] = 0.0
             gm0 = gm1 = gm2 = 0.0
             for c in range(n_cams):
+                g0, g1, g2 = np.float64(g_out[c, n, 0]), np.float64(g_out[c, n, 1]), np.float64(g_out[c, n, 2])
+                if g0 == 0.0 and g1 == 0.0 and g2 == 0.0:
+                    continue
                 dirn, norm = _sh_dir(means, centres, n, c, degree)
                 _sh_bases(degree, dirn[0], dirn[1], dirn[2], bases)
-                cc = c if coeffs.shape[0] > 1 else 0
-                g_bases[:n_bases] = 0.0
-                for ch in range(3):
-                    acc = 0.0
-                    for k in range(n_bases):
-                        acc += bases[k] * coeffs[cc, n, k, ch]
-                    if acc + 0.5 < 0.0:  # clamp_min passes the gradient where SH + 0.5 >= 0
-                        continue
-                    g = np.float64(g_out[c, n, ch])
-                    for k in range(n_bases):
-                        g_coeffs[cc, n, k, ch] += bases[k] * g
-                        g_bases[k] += coeffs[cc, n, k, ch] * g
+                coef = coeffs[c if not shared else 0, n]
+                grad = g_coeffs[c if not shared else 0, n]
+                # The three channels' sums in one pass over the bases (each in the order of k).
+                s0 = s1 = s2 = 0.0
+                for k in range(n_bases):
+                    s0 += bases[k] * coef[k, 0]
+                    s1 += bases[k] * coef[k, 1]
+                    s2 += bases[k] * coef[k, 2]
+                # clamp_min passes the gradient where SH + 0.5 >= 0 (and NaN, as torch does)
+                t0, t1, t2 = not s0 + 0.5 < 0.0, not s1 + 0.5 < 0.0, not s2 + 0.5 < 0.0
+                for k in range(n_bases):
+                    b = bases[k]
+                    gb = 0.0
+                    if t0:
+                        grad[k, 0] += b * g0
+                        gb += coef[k, 0] * g0
+                    if t1:
+                        grad[k, 1] += b * g1
+                        gb += coef[k, 1] * g1
+                    if t2:
+                        grad[k, 2] += b * g2
+                        gb += coef[k, 2] * g2
+                    g_bases[k] = gb
                 if degree == 0:
                     continue
                 gx, gy, gz = _sh_bases_vjp(degree, dirn[0], dirn[1], dirn[2], g_bases)
