@@ -8,6 +8,7 @@ them on disk, so later runs take a few seconds.
 from __future__ import annotations
 
 import numba
+import numpy as np
 import pytest
 import torch
 from nerfstudio.data.scene_box import SceneBox
@@ -202,6 +203,45 @@ def test_a_gaussian_is_listed_only_in_the_tiles_its_ellipse_reaches(monkeypatch)
     dense_out, dense_alpha = rasterize_to_pixels_dense(*args)
     torch.testing.assert_close(out, dense_out)
     torch.testing.assert_close(alpha, dense_alpha)
+
+
+def test_tile_lists_are_in_depth_order_per_tile(monkeypatch):
+    """The parallel counting sort of the binning (records in chunks) gives every tile the list of
+    the records with pixels in it in record (depth) order, each record its slots in tile order,
+    and each slot the start of its pixels: a plain per-record walk's lists, with two cameras."""
+    scene = make_scene(400, 70, 50, n_cams=2, seed=5)
+    rasterize_cpu_fast.warm_up(F32)  # compiles the kernels before one is wrapped
+    binning, calls = rasterize_cpu_fast._bin_tiles, []
+
+    def bin_tiles(*args):
+        calls.append((args, binning(*args)))
+        return calls[-1][1]
+
+    monkeypatch.setattr(rasterize_cpu_fast, "_bin_tiles", bin_tiles)
+    rasterize_cpu_fast.rasterization(**scene)
+    (boxes, entries, n_gauss, n_cams, tiles_x, tiles_y, box_start, pixels), got = calls[0]
+    lists = [[] for _ in range(n_cams * tiles_x * tiles_y)]
+    per_record, sizes = [], {}
+    for j in range(boxes.shape[0]):
+        q, tiles = box_start[j], []
+        for ty in range(boxes[j, 2] // 16, boxes[j, 3] // 16 + 1):
+            for tx in range(boxes[j, 0] // 16, boxes[j, 1] // 16 + 1):
+                if pixels[q] > 0:
+                    tile = (entries[j] // n_gauss) * tiles_x * tiles_y + ty * tiles_x + tx
+                    tiles.append(tile)
+                    lists[tile].append(j)
+                    sizes[(tile, j)] = pixels[q]
+                q += 1
+        per_record.append(tiles)
+    tile_start, tile_items, rec_start, rec_slots, vis_start = got
+    assert boxes.shape[0] > 16 * 4 and len({t // (tiles_x * tiles_y) for t in sum(per_record, [])}) == 2
+    assert tile_start.tolist() == np.cumsum([0] + [len(items) for items in lists]).tolist()
+    assert tile_items.tolist() == sum(lists, [])
+    slots = [tile_start[t] + lists[t].index(j) for j, tiles in enumerate(per_record) for t in tiles]
+    assert rec_start.tolist() == np.cumsum([0] + [len(tiles) for tiles in per_record]).tolist()
+    assert rec_slots.tolist() == slots
+    slot_sizes = [sizes[(t, j)] for t, items in enumerate(lists) for j in items]
+    assert vis_start.tolist() == np.cumsum([0] + slot_sizes).tolist()
 
 
 def test_results_do_not_depend_on_the_thread_count():

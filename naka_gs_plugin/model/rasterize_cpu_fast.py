@@ -78,6 +78,9 @@ VIS_STORE_MAX = 1 << 27
 pairs for trained-scene-like Gaussians) the forward keeps for the backward (512 MB in float32);
 beyond, the backward recomputes them (slower, same results)."""
 
+_BIN_CHUNKS = 16
+"""Chunks of records :func:`_bin_tiles` bins in parallel (the lists do not depend on it)."""
+
 N_GRAD = 8
 """Per-Gaussian gradient columns before the colours: d means2d (2), |d means2d| (2), d conics (3),
 d opacity (1)."""
@@ -208,46 +211,63 @@ def _tile_pixels(boxes, row_start, spans):
     return box_start, pixels
 
 
-@njit(cache=True)
+@njit(parallel=True, cache=True)
 def _bin_tiles(boxes, entries, n_gauss, n_cams, tiles_x, tiles_y, box_start, pixels):
     """CSR lists, per tile, of the record indices whose lenient ellipse has a pixel in it (a row
     span of :func:`_row_spans`; the tiles its box only grazes would composite nothing), in record
     (depth) order; per record the list (slot) positions it got, in increasing tile order; and per
-    slot the start of its pixels in the forward's ``exp(-sigma)`` store (``vis_start``)."""
+    slot the start of its pixels in the forward's ``exp(-sigma)`` store (``vis_start``).
+
+    A counting sort, parallel over ``_BIN_CHUNKS`` contiguous chunks of records: each chunk counts
+    its records per tile, then fills its own part of every tile's list, which starts after the
+    earlier chunks' parts; so each list is in record order, whatever the chunking and threads."""
+    n_rec = boxes.shape[0]
     tiles_per_cam = tiles_x * tiles_y
-    counts = np.zeros(n_cams * tiles_per_cam + 1, dtype=np.int64)
-    rec_start = np.zeros(boxes.shape[0] + 1, dtype=np.int64)
-    for j in range(boxes.shape[0]):
-        base = (entries[j] // n_gauss) * tiles_per_cam
-        tx0, tx1 = boxes[j, 0] // TILE_SIZE, boxes[j, 1] // TILE_SIZE
-        q = box_start[j]
-        for ty in range(boxes[j, 2] // TILE_SIZE, boxes[j, 3] // TILE_SIZE + 1):
-            for tx in range(tx0, tx1 + 1):
-                if pixels[q] > 0:
-                    counts[base + ty * tiles_x + tx + 1] += 1
-                    rec_start[j + 1] += 1
-                q += 1
-        rec_start[j + 1] += rec_start[j]
-    tile_start = np.cumsum(counts)
-    fill = tile_start[:-1].copy()
-    tile_items = np.empty(tile_start[-1], dtype=np.int32)
-    rec_slots = np.empty(tile_start[-1], dtype=np.int64)
-    vis_start = np.zeros(tile_start[-1] + 1, dtype=np.int64)
-    for j in range(boxes.shape[0]):
-        base = (entries[j] // n_gauss) * tiles_per_cam
-        tx0, tx1 = boxes[j, 0] // TILE_SIZE, boxes[j, 1] // TILE_SIZE
-        q, slot = box_start[j], rec_start[j]
-        for ty in range(boxes[j, 2] // TILE_SIZE, boxes[j, 3] // TILE_SIZE + 1):
-            for tx in range(tx0, tx1 + 1):
-                if pixels[q] > 0:
-                    tile = base + ty * tiles_x + tx
-                    tile_items[fill[tile]] = j
-                    rec_slots[slot] = fill[tile]
-                    vis_start[fill[tile] + 1] = pixels[q]
-                    fill[tile] += 1
-                    slot += 1
-                q += 1
-    for k in range(tile_items.shape[0]):
+    n_tiles = n_cams * tiles_per_cam
+    n_chunks = min(_BIN_CHUNKS, max(n_rec, 1))
+    per_chunk = (n_rec + n_chunks - 1) // n_chunks
+    chunk_counts = np.zeros((n_chunks, n_tiles), dtype=np.int64)
+    rec_counts = np.zeros(n_rec + 1, dtype=np.int64)
+    for chunk in prange(n_chunks):
+        for j in range(chunk * per_chunk, min((chunk + 1) * per_chunk, n_rec)):
+            base = (entries[j] // n_gauss) * tiles_per_cam
+            tx0, tx1 = boxes[j, 0] // TILE_SIZE, boxes[j, 1] // TILE_SIZE
+            q = box_start[j]
+            for ty in range(boxes[j, 2] // TILE_SIZE, boxes[j, 3] // TILE_SIZE + 1):
+                for tx in range(tx0, tx1 + 1):
+                    if pixels[q] > 0:
+                        chunk_counts[chunk, base + ty * tiles_x + tx] += 1
+                        rec_counts[j + 1] += 1
+                    q += 1
+    rec_start = np.cumsum(rec_counts)
+    tile_start = np.empty(n_tiles + 1, dtype=np.int64)
+    fill = np.empty((n_chunks, n_tiles), dtype=np.int64)
+    total = 0
+    for tile in range(n_tiles):
+        tile_start[tile] = total
+        for chunk in range(n_chunks):
+            fill[chunk, tile] = total
+            total += chunk_counts[chunk, tile]
+    tile_start[n_tiles] = total
+    tile_items = np.empty(total, dtype=np.int32)
+    rec_slots = np.empty(total, dtype=np.int64)
+    vis_start = np.zeros(total + 1, dtype=np.int64)
+    for chunk in prange(n_chunks):
+        for j in range(chunk * per_chunk, min((chunk + 1) * per_chunk, n_rec)):
+            base = (entries[j] // n_gauss) * tiles_per_cam
+            tx0, tx1 = boxes[j, 0] // TILE_SIZE, boxes[j, 1] // TILE_SIZE
+            q, slot = box_start[j], rec_start[j]
+            for ty in range(boxes[j, 2] // TILE_SIZE, boxes[j, 3] // TILE_SIZE + 1):
+                for tx in range(tx0, tx1 + 1):
+                    if pixels[q] > 0:
+                        k = fill[chunk, base + ty * tiles_x + tx]
+                        tile_items[k] = j
+                        rec_slots[slot] = k
+                        vis_start[k + 1] = pixels[q]
+                        fill[chunk, base + ty * tiles_x + tx] = k + 1
+                        slot += 1
+                    q += 1
+    for k in range(total):
         vis_start[k + 1] += vis_start[k]
     return tile_start, tile_items, rec_start, rec_slots, vis_start
 
