@@ -15,7 +15,7 @@ from nerfstudio.data.scene_box import SceneBox
 
 from naka_gs_plugin.model import rasterize_cpu_fast
 from naka_gs_plugin.model.projection import project_gaussians
-from naka_gs_plugin.model.rasterize import ALPHA_MIN, rasterization
+from naka_gs_plugin.model.rasterize import ALPHA_MIN, TILE_SIZE, rasterization
 from naka_gs_plugin.model.rasterize_cpu_fast import rasterize_to_pixels_cpu_fast
 from naka_gs_plugin.model.rasterize_dense import rasterize_to_pixels_dense
 from tests.helpers import F32, F64, make_scene, train_steps
@@ -224,8 +224,8 @@ def test_tile_lists_are_in_depth_order_per_tile(monkeypatch):
     per_record, sizes = [], {}
     for j in range(boxes.shape[0]):
         q, tiles = box_start[j], []
-        for ty in range(boxes[j, 2] // 16, boxes[j, 3] // 16 + 1):
-            for tx in range(boxes[j, 0] // 16, boxes[j, 1] // 16 + 1):
+        for ty in range(boxes[j, 2] // TILE_SIZE, boxes[j, 3] // TILE_SIZE + 1):
+            for tx in range(boxes[j, 0] // TILE_SIZE, boxes[j, 1] // TILE_SIZE + 1):
                 if pixels[q] > 0:
                     tile = (entries[j] // n_gauss) * tiles_x * tiles_y + ty * tiles_x + tx
                     tiles.append(tile)
@@ -234,7 +234,10 @@ def test_tile_lists_are_in_depth_order_per_tile(monkeypatch):
                 q += 1
         per_record.append(tiles)
     tile_start, tile_items, rec_start, rec_slots, vis_start = got
-    assert boxes.shape[0] > 16 * 4 and len({t // (tiles_x * tiles_y) for t in sum(per_record, [])}) == 2
+    assert (
+        boxes.shape[0] > 4 * rasterize_cpu_fast._BIN_CHUNKS
+        and len({t // (tiles_x * tiles_y) for t in sum(per_record, [])}) == 2
+    )
     assert tile_start.tolist() == np.cumsum([0] + [len(items) for items in lists]).tolist()
     assert tile_items.tolist() == sum(lists, [])
     slots = [tile_start[t] + lists[t].index(j) for j, tiles in enumerate(per_record) for t in tiles]

@@ -428,6 +428,18 @@ def _sh_dir(means, centres, n, c, degree):
     return (dx / d, dy / d, dz / d), norm
 
 
+@njit(cache=True, inline="always")
+def _sh_sums(bases, coef, n_bases):
+    """The three channels' ``sum_k bases[k] * coef[k, ch]`` (float64), in one pass over the bases,
+    each channel summed in the order of ``k``."""
+    s0 = s1 = s2 = 0.0
+    for k in range(n_bases):
+        s0 += bases[k] * coef[k, 0]
+        s1 += bases[k] * coef[k, 1]
+        s2 += bases[k] * coef[k, 2]
+    return s0, s1, s2
+
+
 @njit(parallel=True, cache=True)
 def _sh_forward(means, coeffs, centres, degree, out):
     """``out`` [C,N,3] = max(SH(means - centre_c) + 0.5, 0); ``coeffs`` [1 or C, N, K, 3]."""
@@ -439,12 +451,7 @@ def _sh_forward(means, coeffs, centres, degree, out):
             for c in range(n_cams):
                 dirn, _ = _sh_dir(means, centres, n, c, degree)
                 _sh_bases(degree, dirn[0], dirn[1], dirn[2], bases)
-                coef = coeffs[c if coeffs.shape[0] > 1 else 0, n]
-                s0 = s1 = s2 = 0.0
-                for k in range(n_bases):  # the three channels in one pass, each summed in the order of k
-                    s0 += bases[k] * coef[k, 0]
-                    s1 += bases[k] * coef[k, 1]
-                    s2 += bases[k] * coef[k, 2]
+                s0, s1, s2 = _sh_sums(bases, coeffs[c if coeffs.shape[0] > 1 else 0, n], n_bases)
                 out[c, n, 0], out[c, n, 1], out[c, n, 2] = max(s0 + 0.5, 0.0), max(s1 + 0.5, 0.0), max(s2 + 0.5, 0.0)
 
 
@@ -471,12 +478,7 @@ def _sh_backward(means, coeffs, centres, degree, g_out, g_means, g_coeffs):
                 _sh_bases(degree, dirn[0], dirn[1], dirn[2], bases)
                 coef = coeffs[c if not shared else 0, n]
                 grad = g_coeffs[c if not shared else 0, n]
-                # The three channels' sums in one pass over the bases (each in the order of k).
-                s0 = s1 = s2 = 0.0
-                for k in range(n_bases):
-                    s0 += bases[k] * coef[k, 0]
-                    s1 += bases[k] * coef[k, 1]
-                    s2 += bases[k] * coef[k, 2]
+                s0, s1, s2 = _sh_sums(bases, coef, n_bases)
                 # clamp_min passes the gradient where SH + 0.5 >= 0 (and NaN, as torch does)
                 t0, t1, t2 = not s0 + 0.5 < 0.0, not s1 + 0.5 < 0.0, not s2 + 0.5 < 0.0
                 for k in range(n_bases):

@@ -260,11 +260,12 @@ def _bin_tiles(boxes, entries, n_gauss, n_cams, tiles_x, tiles_y, box_start, pix
             for ty in range(boxes[j, 2] // TILE_SIZE, boxes[j, 3] // TILE_SIZE + 1):
                 for tx in range(tx0, tx1 + 1):
                     if pixels[q] > 0:
-                        k = fill[chunk, base + ty * tiles_x + tx]
+                        tile = base + ty * tiles_x + tx
+                        k = fill[chunk, tile]
                         tile_items[k] = j
                         rec_slots[slot] = k
                         vis_start[k + 1] = pixels[q]
-                        fill[chunk, base + ty * tiles_x + tx] = k + 1
+                        fill[chunk, tile] = k + 1
                         slot += 1
                     q += 1
     for k in range(total):
