@@ -208,20 +208,28 @@ def test_a_gaussian_is_listed_only_in_the_tiles_its_ellipse_reaches(monkeypatch)
 def test_tile_lists_are_in_depth_order_per_tile(monkeypatch):
     """The parallel counting sort of the binning (records in chunks) gives every tile the list of
     the records with pixels in it in record (depth) order, each record its slots in tile order,
-    and each slot the start of its pixels: a plain per-record walk's lists, with two cameras."""
+    and each slot the start of its pixels and the first and last row of its row spans in its tile:
+    a plain per-record walk's lists, with two cameras."""
     scene = make_scene(400, 70, 50, n_cams=2, seed=5)
     rasterize_cpu_fast.warm_up(F32)  # compiles the kernels before one is wrapped
-    binning, calls = rasterize_cpu_fast._bin_tiles, []
+    calls = {}
 
-    def bin_tiles(*args):
-        calls.append((args, binning(*args)))
-        return calls[-1][1]
+    def recorded(name):
+        stage = getattr(rasterize_cpu_fast, name)
 
-    monkeypatch.setattr(rasterize_cpu_fast, "_bin_tiles", bin_tiles)
+        def call(*args):
+            calls[name] = (args, stage(*args))
+            return calls[name][1]
+
+        monkeypatch.setattr(rasterize_cpu_fast, name, call)
+
+    recorded("_row_spans")
+    recorded("_bin_tiles")
     rasterize_cpu_fast.rasterization(**scene)
-    (boxes, entries, n_gauss, n_cams, tiles_x, tiles_y, box_start, pixels), got = calls[0]
+    row_start, spans = calls["_row_spans"][1]
+    (boxes, entries, n_gauss, n_cams, tiles_x, tiles_y, box_start, pixels, _), got = calls["_bin_tiles"]
     lists = [[] for _ in range(n_cams * tiles_x * tiles_y)]
-    per_record, sizes = [], {}
+    per_record, sizes, rows = [], {}, {}
     for j in range(boxes.shape[0]):
         q, tiles = box_start[j], []
         for ty in range(boxes[j, 2] // TILE_SIZE, boxes[j, 3] // TILE_SIZE + 1):
@@ -231,9 +239,16 @@ def test_tile_lists_are_in_depth_order_per_tile(monkeypatch):
                     tiles.append(tile)
                     lists[tile].append(j)
                     sizes[(tile, j)] = pixels[q]
+                    span_rows = [
+                        py
+                        for py in range(max(boxes[j, 2], ty * TILE_SIZE), min(boxes[j, 3], ty * TILE_SIZE + 15) + 1)
+                        if max(spans[row_start[j] + py - boxes[j, 2], 0], tx * TILE_SIZE)
+                        <= min(spans[row_start[j] + py - boxes[j, 2], 1], tx * TILE_SIZE + 15)
+                    ]
+                    rows[(tile, j)] = [span_rows[0], span_rows[-1]]
                 q += 1
         per_record.append(tiles)
-    tile_start, tile_items, rec_start, rec_slots, vis_start = got
+    tile_start, tile_items, rec_start, rec_slots, vis_start, slot_y = got
     assert (
         boxes.shape[0] > 4 * rasterize_cpu_fast._BIN_CHUNKS
         and len({t // (tiles_x * tiles_y) for t in sum(per_record, [])}) == 2
@@ -245,6 +260,13 @@ def test_tile_lists_are_in_depth_order_per_tile(monkeypatch):
     assert rec_slots.tolist() == slots
     slot_sizes = [sizes[(t, j)] for t, items in enumerate(lists) for j in items]
     assert vis_start.tolist() == np.cumsum([0] + slot_sizes).tolist()
+    assert slot_y.tolist() == [rows[(t, j)] for t, items in enumerate(lists) for j in items]
+    box_rows = [
+        min(boxes[j, 3], t % (tiles_x * tiles_y) // tiles_x * TILE_SIZE + 15)
+        for t, items in enumerate(lists)
+        for j in items
+    ]
+    assert (slot_y[:, 1] < np.array(box_rows)).any()  # some slots' rows narrower than their box's in the tile
 
 
 def test_results_do_not_depend_on_the_thread_count():

@@ -85,10 +85,10 @@ N_GRAD = 8
 """Per-Gaussian gradient columns before the colours: d means2d (2), |d means2d| (2), d conics (3),
 d opacity (1)."""
 
-REC_COLORS = 12
+REC_COLORS = 8
 """Record layout per visible entry, in the inputs' dtype: mean x, y (0, 1), conic a, b, c (2..4),
-opacity (5), pixel box x_lo, x_hi, y_lo, y_hi (6..9, exact small integers), the lenient ellipse's
-level and conic determinant (10, 11; :func:`_ellipse_level`), colours (12..)."""
+opacity (5), the lenient ellipse's level and conic determinant (6, 7; :func:`_ellipse_level`),
+colours (8..). The pixel boxes are a separate int64 array."""
 
 
 @njit(cache=True)
@@ -159,9 +159,7 @@ def _make_records(entries, means2d, conics, opacities, colors, radii_f, consts, 
         records[j, 0], records[j, 1] = mx, my
         records[j, 2], records[j, 3], records[j, 4] = conics[e, 0], conics[e, 1], conics[e, 2]
         records[j, 5] = opacities[e]
-        for q in range(4):
-            records[j, 6 + q] = boxes[j, q]
-        records[j, 10], records[j, 11] = _ellipse_level(conics[e, 0], conics[e, 1], conics[e, 2], opacities[e])
+        records[j, 6], records[j, 7] = _ellipse_level(conics[e, 0], conics[e, 1], conics[e, 2], opacities[e])
         for d in range(n_dim):
             records[j, REC_COLORS + d] = colors[e, d]
     return records, boxes
@@ -179,7 +177,7 @@ def _row_spans(records, boxes, ys):
     for j in prange(n):
         rec = records[j]
         mx, my, a, b = rec[0], rec[1], rec[2], rec[3]
-        level, det = np.float64(rec[10]), np.float64(rec[11])
+        level, det = np.float64(rec[6]), np.float64(rec[7])
         for py in range(boxes[j, 2], boxes[j, 3] + 1):
             lo, hi = _row_span(my - ys[py], mx, a, b, level, det, boxes[j, 0], boxes[j, 1])
             q = row_start[j] + py - boxes[j, 2]
@@ -189,7 +187,8 @@ def _row_spans(records, boxes, ys):
 
 @njit(parallel=True, cache=True)
 def _tile_pixels(boxes, row_start, spans):
-    """Per record and tile of its box (row-major), how many of its row-span pixels fall in the tile;
+    """Per record and tile of its box (row-major), how many of its row-span pixels fall in the tile,
+    and the first and last image row holding them (``rows``, meaningful where pixels > 0);
     ``box_start[j]`` is record ``j``'s first."""
     n = boxes.shape[0]
     box_start = np.zeros(n + 1, dtype=np.int64)
@@ -198,6 +197,7 @@ def _tile_pixels(boxes, row_start, spans):
             boxes[j, 3] // TILE_SIZE - boxes[j, 2] // TILE_SIZE + 1
         )
     pixels = np.zeros(box_start[n], dtype=np.int64)
+    rows = np.empty((box_start[n], 2), dtype=np.int64)
     for j in prange(n):
         tx0, tx1 = boxes[j, 0] // TILE_SIZE, boxes[j, 1] // TILE_SIZE
         for py in range(boxes[j, 2], boxes[j, 3] + 1):
@@ -207,16 +207,22 @@ def _tile_pixels(boxes, row_start, spans):
                 continue
             band = box_start[j] + (py // TILE_SIZE - boxes[j, 2] // TILE_SIZE) * (tx1 - tx0 + 1)
             for tx in range(lo // TILE_SIZE, hi // TILE_SIZE + 1):
-                pixels[band + tx - tx0] += min(hi, tx * TILE_SIZE + TILE_SIZE - 1) - max(lo, tx * TILE_SIZE) + 1
-    return box_start, pixels
+                q = band + tx - tx0
+                if pixels[q] == 0:
+                    rows[q, 0] = py
+                rows[q, 1] = py
+                pixels[q] += min(hi, tx * TILE_SIZE + TILE_SIZE - 1) - max(lo, tx * TILE_SIZE) + 1
+    return box_start, pixels, rows
 
 
 @njit(parallel=True, cache=True)
-def _bin_tiles(boxes, entries, n_gauss, n_cams, tiles_x, tiles_y, box_start, pixels):
+def _bin_tiles(boxes, entries, n_gauss, n_cams, tiles_x, tiles_y, box_start, pixels, rows):
     """CSR lists, per tile, of the record indices whose lenient ellipse has a pixel in it (a row
     span of :func:`_row_spans`; the tiles its box only grazes would composite nothing), in record
-    (depth) order; per record the list (slot) positions it got, in increasing tile order; and per
-    slot the start of its pixels in the forward's ``exp(-sigma)`` store (``vis_start``).
+    (depth) order; per record the list (slot) positions it got, in increasing tile order; per
+    slot the start of its pixels in the forward's ``exp(-sigma)`` store (``vis_start``) and the
+    first and last image row of its pixels in its tile (``slot_y``: the kernels visit only those
+    rows; the box's other rows in the tile have empty spans there, about two fifths of them).
 
     A counting sort, parallel over ``_BIN_CHUNKS`` contiguous chunks of records: each chunk counts
     its records per tile, then fills its own part of every tile's list, which starts after the
@@ -252,6 +258,7 @@ def _bin_tiles(boxes, entries, n_gauss, n_cams, tiles_x, tiles_y, box_start, pix
     tile_items = np.empty(total, dtype=np.int32)
     rec_slots = np.empty(total, dtype=np.int64)
     vis_start = np.zeros(total + 1, dtype=np.int64)
+    slot_y = np.empty((total, 2), dtype=np.int64)
     for chunk in prange(n_chunks):
         for j in range(chunk * per_chunk, min((chunk + 1) * per_chunk, n_rec)):
             base = (entries[j] // n_gauss) * tiles_per_cam
@@ -265,12 +272,13 @@ def _bin_tiles(boxes, entries, n_gauss, n_cams, tiles_x, tiles_y, box_start, pix
                         tile_items[k] = j
                         rec_slots[slot] = k
                         vis_start[k + 1] = pixels[q]
+                        slot_y[k, 0], slot_y[k, 1] = rows[q, 0], rows[q, 1]
                         fill[chunk, tile] = k + 1
                         slot += 1
                     q += 1
     for k in range(total):
         vis_start[k + 1] += vis_start[k]
-    return tile_start, tile_items, rec_start, rec_slots, vis_start
+    return tile_start, tile_items, rec_start, rec_slots, vis_start, slot_y
 
 
 @njit(parallel=True, cache=True)
@@ -339,11 +347,24 @@ def _tile_box(tile, tiles_x, tiles_y, width, height):
 
 @njit(parallel=True, cache=True)
 def _forward_kernel(
-    tile_order, tile_start, vis_start, slot_rows, records, xs, ys, consts, n_cams, width, height, spans, vis_store
+    tile_order,
+    tile_start,
+    vis_start,
+    slot_rows,
+    slot_y,
+    records,
+    xs,
+    ys,
+    consts,
+    n_cams,
+    width,
+    height,
+    spans,
+    vis_store,
 ):
     """Composite every tile; returns colours without background, T_final (f64) and last entries.
-    Row ``py`` of slot ``k``'s record has the row span ``spans[slot_rows[k] + py]`` (see
-    :func:`_row_spans`). Stores, for the backward to reuse instead of recomputing, the
+    Slot ``k``'s record has pixels in its tile on rows ``slot_y[k]`` (first, last); row ``py`` has
+    the row span ``spans[slot_rows[k] + py]`` (see :func:`_row_spans`). Stores, for the backward to reuse instead of recomputing, the
     ``exp(-sigma)`` of every pair it evaluated (0 for skipped pairs) in ``vis_store``, slot ``k``'s
     span pixels from ``vis_start[k]`` on, row by row (unless it is shorter than ``vis_start[-1]``:
     then the backward recomputes them)."""
@@ -374,7 +395,7 @@ def _forward_kernel(
             c0 = np.float64(rec[REC_COLORS])
             c1 = np.float64(rec[REC_COLORS + min(1, n_dim - 1)])
             c2 = np.float64(rec[REC_COLORS + min(2, n_dim - 1)])
-            by0, by1 = max(np.int64(rec[8]), y0), min(np.int64(rec[9]), y1 - 1)
+            by0, by1 = slot_y[k, 0], slot_y[k, 1]
             pos = vis_start[k]
             for py in range(by0, by1 + 1):
                 lo = max(np.int64(spans[slot_rows[k] + py, 0]), x0)
@@ -425,6 +446,7 @@ def _backward_kernel(
     tile_start,
     vis_start,
     slot_rows,
+    slot_y,
     records,
     xs,
     ys,
@@ -476,7 +498,7 @@ def _backward_kernel(
         for kk in range(k_end - 1, -1, -1):
             rec = records[s + kk]
             mx, my, a, b, c, opacity = rec[0], rec[1], rec[2], rec[3], rec[4], rec[5]
-            by0, by1 = max(np.int64(rec[8]), y0), min(np.int64(rec[9]), y1 - 1)
+            by0, by1 = slot_y[s + kk, 0], slot_y[s + kk, 1]
             rows = slot_rows[s + kk]
             pos = vis_start[s + kk]
             # Scalars (kept in registers) for the geometry, the colour part in a small array.
@@ -725,7 +747,7 @@ class _TileComposite(torch.autograd.Function):
             xs = (torch.arange(width, dtype=dtype) + 0.5).numpy()  # pixel centres, as the torch path
             ys = (torch.arange(height, dtype=dtype) + 0.5).numpy()
             row_start, spans = _row_spans(records, boxes, ys)
-            tile_start, tile_items, rec_start, rec_slots, vis_start = _bin_tiles(
+            tile_start, tile_items, rec_start, rec_slots, vis_start, slot_y = _bin_tiles(
                 boxes, entries, n, n_cams, tiles_x, tiles_y, *_tile_pixels(boxes, row_start, spans)
             )
             kernel_args = (
@@ -733,6 +755,7 @@ class _TileComposite(torch.autograd.Function):
                 tile_start,
                 vis_start,
                 row_start[tile_items] - boxes[tile_items, 2],  # per slot: its record's row 0 in spans
+                slot_y,
                 _gather_rows(records, tile_items),
                 xs,
                 ys,
@@ -770,7 +793,7 @@ class _TileComposite(torch.autograd.Function):
             upstream = upstream + (grad_colors * backgrounds[:, None, :]).sum(-1).double()
         grad_q = torch.from_numpy(t_final) * upstream.reshape(-1)
         with _stage("backward kernel"):
-            n_slots = ctx.kernel_args[4].shape[0]
+            n_slots = ctx.kernel_args[5].shape[0]
             slot_buf = _take_scratch("slots", n_slots * (N_GRAD + dim), np.float64)
             slots = slot_buf[: n_slots * (N_GRAD + dim)].reshape(n_slots, N_GRAD + dim)
             _backward_kernel(
