@@ -364,10 +364,10 @@ def _forward_kernel(
 ):
     """Composite every tile; returns colours without background, T_final (f64) and last entries.
     Slot ``k``'s record has pixels in its tile on rows ``slot_y[k]`` (first, last); row ``py`` has
-    the row span ``spans[slot_rows[k] + py]`` (see :func:`_row_spans`). Stores, for the backward to reuse instead of recomputing, the
-    ``exp(-sigma)`` of every pair it evaluated (0 for skipped pairs) in ``vis_store``, slot ``k``'s
-    span pixels from ``vis_start[k]`` on, row by row (unless it is shorter than ``vis_start[-1]``:
-    then the backward recomputes them)."""
+    the row span ``spans[slot_rows[k] + py]`` (see :func:`_row_spans`). Stores, for the backward to
+    reuse instead of recomputing, the ``exp(-sigma)`` of every pair it evaluated (0 for skipped
+    pairs) in ``vis_store``, slot ``k``'s span pixels from ``vis_start[k]`` on, row by row (unless it
+    is shorter than ``vis_start[-1]``: then the backward recomputes them)."""
     tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
     tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
     n_dim = records.shape[1] - REC_COLORS
