@@ -241,9 +241,11 @@ def test_tile_lists_are_in_depth_order_per_tile(monkeypatch):
                     sizes[(tile, j)] = pixels[q]
                     span_rows = [
                         py
-                        for py in range(max(boxes[j, 2], ty * TILE_SIZE), min(boxes[j, 3], ty * TILE_SIZE + 15) + 1)
+                        for py in range(
+                            max(boxes[j, 2], ty * TILE_SIZE), min(boxes[j, 3], ty * TILE_SIZE + TILE_SIZE - 1) + 1
+                        )
                         if max(spans[row_start[j] + py - boxes[j, 2], 0], tx * TILE_SIZE)
-                        <= min(spans[row_start[j] + py - boxes[j, 2], 1], tx * TILE_SIZE + 15)
+                        <= min(spans[row_start[j] + py - boxes[j, 2], 1], tx * TILE_SIZE + TILE_SIZE - 1)
                     ]
                     rows[(tile, j)] = [span_rows[0], span_rows[-1]]
                 q += 1
@@ -262,7 +264,7 @@ def test_tile_lists_are_in_depth_order_per_tile(monkeypatch):
     assert vis_start.tolist() == np.cumsum([0] + slot_sizes).tolist()
     assert slot_y.tolist() == [rows[(t, j)] for t, items in enumerate(lists) for j in items]
     box_rows = [
-        min(boxes[j, 3], t % (tiles_x * tiles_y) // tiles_x * TILE_SIZE + 15)
+        min(boxes[j, 3], t % (tiles_x * tiles_y) // tiles_x * TILE_SIZE + TILE_SIZE - 1)
         for t, items in enumerate(lists)
         for j in items
     ]
