@@ -43,6 +43,7 @@ LANES = 8
 PLANES = 7  # transmittance, live (1/0), r, g, b, last entry (exact small integers), pixel centres x
 PLANE = TILE_SIZE * TILE_SIZE
 REC = raster_fast.REC_COLORS
+N_GRAD = raster_fast.N_GRAD
 
 
 @intrinsic
@@ -166,7 +167,7 @@ def backward_simd(
     slots,
     lanes,
 ):
-    """The shipped backward's gradient ``slots`` [K, 11] (float32) from :func:`forward_simd`'s float32
+    """The shipped backward's gradient ``slots`` [K, N_GRAD + 3] (float32) from :func:`forward_simd`'s float32
     ``t_final`` and ``last``, each pixel walked back to front as there, 8 pixels of a tile row at a time.
     Each entry's sums are scalars the loop over lanes reduces: ``reassoc`` lets LLVM keep them as 8-wide
     partial sums and add the lanes once per half-row (another summation order than the shipped kernel's)."""
@@ -256,7 +257,7 @@ def backward_simd(
                         g_cc += HALF * gs * dy * dy
             slots[k, 0], slots[k, 1], slots[k, 2], slots[k, 3] = g_mx, g_my, g_absx, g_absy
             slots[k, 4], slots[k, 5], slots[k, 6], slots[k, 7] = g_ca, g_cb, g_cc, g_op
-            slots[k, 8], slots[k, 9], slots[k, 10] = g_r, g_g, g_b
+            slots[k, N_GRAD], slots[k, N_GRAD + 1], slots[k, N_GRAD + 2] = g_r, g_g, g_b
 
 
 def captured_inputs(config: Path, scale: int) -> list:
@@ -277,6 +278,20 @@ def captured_inputs(config: Path, scale: int) -> list:
     return [args[:5] + (np.ascontiguousarray(args[5][:, :rgb]),) + args[6:] for args in calls]
 
 
+def alternated(*kernels, repeats: int) -> list:
+    """Median seconds of each ``(kernel, [args, ...])`` over all its calls, the kernels taking turns and the
+    order reversed every other repeat (this VM's speed drifts)."""
+    seconds = [[] for _ in kernels]
+    for repeat in range(repeats):
+        order = list(enumerate(kernels))
+        for i, (kernel, inputs) in order if repeat % 2 == 0 else order[::-1]:
+            started = time.perf_counter()
+            for kernel_args in inputs:
+                kernel(*kernel_args)
+            seconds[i].append(time.perf_counter() - started)
+    return [float(np.median(s)) for s in seconds]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("config", type=Path)
@@ -295,15 +310,9 @@ def main() -> None:
             f"max |colour difference| {np.abs(out_a - out_b).max():.2e}, transmittance {np.abs(t_a - t_b).max():.2e}, "
             f"last entries differing {(last_a != last_b).mean():.2%}"
         )
-    seconds = {"shipped": [], "simd": []}
-    for repeat in range(args.repeats):
-        order = [("shipped", raster_fast._forward_kernel, shipped_args), ("simd", forward_simd, simd_args)]
-        for name, kernel, inputs in order if repeat % 2 == 0 else order[::-1]:
-            started = time.perf_counter()
-            for kernel_args in inputs:
-                kernel(*kernel_args)
-            seconds[name].append(time.perf_counter() - started)
-    shipped, simd = np.median(seconds["shipped"]), np.median(seconds["simd"])
+    shipped, simd = alternated(
+        (raster_fast._forward_kernel, shipped_args), (forward_simd, simd_args), repeats=args.repeats
+    )
     print(
         f"1/{args.scale} size, {len(shipped_args)} views: shipped forward {1000 * shipped:.1f} ms, "
         f"vectorised {1000 * simd:.1f} ms (x{simd / shipped:.2f})"
@@ -320,11 +329,18 @@ def main() -> None:
         upstream = 0.1 * rng.normal(size=n_cams * h * w)
         n_slots = a[5].shape[0]
         shipped_bwd.append(
-            a[:13] + (t64, last64, vis_store, grad_colors, t64 * upstream, np.zeros((n_slots, raster_fast.N_GRAD + 3)))
+            a[:13] + (t64, last64, vis_store, grad_colors, t64 * upstream, np.zeros((n_slots, N_GRAD + 3)))
         )
         simd_bwd.append(
             b[:12]
-            + (t32, last32, grad_colors.astype(F32), (t32 * upstream).astype(F32), np.zeros((n_slots, 11), F32), LANES)
+            + (
+                t32,
+                last32,
+                grad_colors.astype(F32),
+                (t32 * upstream).astype(F32),
+                np.zeros((n_slots, N_GRAD + 3), F32),
+                LANES,
+            )
         )
     for a, b in zip(shipped_bwd, simd_bwd):
         raster_fast._backward_kernel(*a)
@@ -334,15 +350,9 @@ def main() -> None:
         print(
             "max |slot difference| / column max:", " ".join(f"{x:.1e}" for x in np.abs(ref - got).max(axis=0) / scale)
         )
-    seconds = {"shipped": [], "simd": []}
-    for repeat in range(args.repeats):
-        order = [("shipped", raster_fast._backward_kernel, shipped_bwd), ("simd", backward_simd, simd_bwd)]
-        for name, kernel, inputs in order if repeat % 2 == 0 else order[::-1]:
-            started = time.perf_counter()
-            for kernel_args in inputs:
-                kernel(*kernel_args)
-            seconds[name].append(time.perf_counter() - started)
-    shipped_b, simd_b = np.median(seconds["shipped"]), np.median(seconds["simd"])
+    shipped_b, simd_b = alternated(
+        (raster_fast._backward_kernel, shipped_bwd), (backward_simd, simd_bwd), repeats=args.repeats
+    )
     print(
         f"1/{args.scale} size, {len(shipped_args)} views: shipped backward {1000 * shipped_b:.1f} ms, "
         f"vectorised {1000 * simd_b:.1f} ms (x{simd_b / shipped_b:.2f}); forward + backward "
