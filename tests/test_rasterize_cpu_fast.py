@@ -330,6 +330,58 @@ def test_backward_without_the_forward_store_gives_the_same_results(monkeypatch):
     assert torch.equal(stored[3]["means2d"].absgrad, recomputed[3]["means2d"].absgrad)
 
 
+def test_exp_f32_is_within_two_ulp():
+    """The 8-wide kernels' float32 exp against float64's, over the range alphas come from."""
+
+    @numba.njit
+    def exp_all(x):
+        out = np.empty_like(x)
+        for i in range(x.shape[0]):
+            out[i] = rasterize_cpu_fast._exp_f32(x[i])
+        return out
+
+    x = np.linspace(-80.0, 0.0, 1_000_003, dtype=np.float32)
+    ref = np.exp(x.astype(np.float64))
+    ulp = np.spacing(ref.astype(np.float32)).astype(np.float64)
+    assert float((np.abs(exp_all(x) - ref) / ulp).max()) <= 2.0
+
+
+def test_float32_rgb_takes_the_8_wide_kernels_and_matches_the_generic_ones(monkeypatch):
+    """Training renders (float32 RGB) with wide enough row spans composite 8 pixels at a time in
+    float32; lists too long for its float32 entry counts take the generic kernels (float64
+    transmittance). Both agree to float32 rounding, image-edge tiles (61x45) included."""
+    scene = make_scene(400, 61, 45, hard=True, seed=4)
+    weights = _weights(scene, 3, F32)
+    bg = torch.rand(2, 3, generator=torch.Generator().manual_seed(5))
+    rasterize_cpu_fast.warm_up(F32)  # compiled before the kernels are wrapped
+    calls = []
+    for name in ("_forward_kernel_rgb32", "_forward_kernel"):
+        kernel = getattr(rasterize_cpu_fast, name)
+        monkeypatch.setattr(rasterize_cpu_fast, name, lambda *a, k=kernel, n=name: (calls.append(n), k(*a))[1])
+    kwargs = dict(backgrounds=bg, absgrad=True)
+    monkeypatch.setattr(rasterize_cpu_fast, "RGB32_MIN_RUN", 0.0)
+    fast = render_and_grads(rasterize_cpu_fast.rasterization, scene, weights, **kwargs)
+    monkeypatch.setattr(rasterize_cpu_fast, "_MAX_LAST_F32", 0)
+    generic = render_and_grads(rasterize_cpu_fast.rasterization, scene, weights, **kwargs)
+    assert calls == ["_forward_kernel_rgb32", "_forward_kernel"]
+    (fc, fa, fg, fmeta), (gc, ga, gg, gmeta) = fast, generic
+    assert (fc - gc).abs().max() <= 1e-5 and (fa - ga).abs().max() <= 1e-5
+    for k in PARAMS:
+        assert rel_err(fg[k], gg[k]) <= 1e-4, k
+    assert rel_err(fmeta["means2d"].absgrad, gmeta["means2d"].absgrad) <= 1e-4
+
+
+def test_narrow_row_spans_take_the_generic_kernels():
+    """Row spans of a few pixels leave most of the 8 lanes idle: the generic kernels do them."""
+    tile_start = np.array([0, 2, 3])
+    slot_y = np.array([[0, 3], [5, 5], [2, 4]])  # 4 + 1 + 3 = 8 (entry, tile row) pairs
+    wide = np.array([0, 30, 36, 50])  # 50 span pixels: 6.25 per row
+    narrow = np.array([0, 20, 24, 30])  # 30: 3.75 per row
+    assert rasterize_cpu_fast._spans_suit_lanes(tile_start, wide, slot_y)
+    assert not rasterize_cpu_fast._spans_suit_lanes(tile_start, narrow, slot_y)
+    assert not rasterize_cpu_fast._spans_suit_lanes(np.array([0]), np.array([0]), np.zeros((0, 2), np.int64))
+
+
 def test_half_precision_is_refused():
     x = torch.zeros(1, 1, 3, dtype=torch.float16)
     radii = torch.ones(1, 1, dtype=torch.int32)

@@ -24,11 +24,16 @@ absolute values, gsplat's ``absgrad``), conics, opacities and colours summed per
 entry) slot; a pass parallel over Gaussians then adds each one's slots up in tile order, so there
 are no races and the result does not depend on the thread count.
 
-``sigma`` and ``alpha`` are computed in the inputs' dtype,
+In these generic kernels ``sigma`` and ``alpha`` are computed in the inputs' dtype,
 operation for operation as the torch path (so the same pairs pass the 1/255 test, and the
 backward re-derives exactly the forward's alphas); gradients accumulate in float64. No
 ``fastmath``: contraction into FMAs or approximate ``exp`` would let the forward, the backward and
-the torch path disagree on pairs at the thresholds. Kernels are compiled on first use per dtype
+the torch path disagree on pairs at the thresholds. They are the reference for the float32 RGB
+kernels that training renders take when their row spans are wide enough (``RGB32_MIN_RUN``):
+:func:`_forward_kernel_rgb32` and :func:`_backward_kernel_rgb32` evaluate 8 pixels of a tile row
+as one vector, in float32 throughout (gsplat's CUDA precision) with a vectorisable ``exp``; both
+derive bitwise the same alphas from each other, and agree with the generic kernels to float32
+rounding. Kernels are compiled on first use per dtype
 (tens of seconds) and cached on disk by numba (``cache=True``: next to this file, or under
 ``NUMBA_CACHE_DIR`` / the user cache directory when the package directory is not writable); the
 first call logs how long the compile or cache load took. ``numba.set_num_threads`` sets the
@@ -47,7 +52,9 @@ import numba
 import numpy as np
 import torch
 from jaxtyping import Float, Int
-from numba import njit, prange
+from llvmlite import ir
+from numba import njit, prange, types
+from numba.extending import intrinsic
 from rich.console import Console
 from torch import Tensor
 
@@ -559,6 +566,268 @@ def _backward_kernel(
                 slots[k, N_GRAD + d] = gcolor[d]
 
 
+LANES = 8
+"""Pixels the float32 RGB kernels evaluate as one vector (AVX2's 8 float32 lanes): a tile row is
+two such halves. Passed to the kernels at run time: a constant trip count gets the lane loop
+unrolled, and LLVM does not vectorise the unrolled stores (they may alias)."""
+
+_PLANE = TILE_SIZE * TILE_SIZE
+_MAX_LAST_F32 = 1 << 24
+"""Tile lists at least this long take the generic kernels: the float32 kernels keep each pixel's
+last entry in a float32 plane, exact below 2**24."""
+
+RGB32_MIN_RUN = 5.5
+"""Fewest span pixels per (list entry, tile row), on average over a render, for the 8-wide kernels:
+below, most lanes of a half row idle and the generic kernels are faster (about 1.1x the time at
+4.6 pixels, 0.85x at 6.5, 0.77x at 8.9 for a render's forward and backward: docs/cpu.md)."""
+
+
+def _spans_suit_lanes(
+    tile_start: Int[np.ndarray, " T1"], vis_start: Int[np.ndarray, " K1"], slot_y: Int[np.ndarray, "K 2"]
+) -> bool:
+    """Whether a float32 RGB render's lists take the 8-wide kernels: wide enough row spans in its
+    tiles (``RGB32_MIN_RUN``) and no list too long for their float32 entry counts."""
+    if len(slot_y) == 0 or int(np.diff(tile_start).max()) >= _MAX_LAST_F32:
+        return False
+    rows = int((slot_y[:, 1] - slot_y[:, 0]).sum()) + len(slot_y)
+    return int(vis_start[-1]) >= RGB32_MIN_RUN * rows
+
+
+@intrinsic
+def _bits_as_f32(typingctx, bits):
+    """The float32 whose bits are the int32 ``bits`` (an LLVM bitcast, which vectorises)."""
+
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], ir.FloatType())
+
+    return types.float32(types.int32), codegen
+
+
+@njit(cache=True, inline="always")
+def _exp_f32(x):
+    """``exp(x)`` of a float32 ``x <= 0``, within 2 ulp (Cephes ``expf``; clamped at -80, where it
+    is far below ``ALPHA_MIN``). Written out rather than ``np.exp``: libm's ``expf`` is a call LLVM
+    cannot vectorise (no SVML here), and with no integer op wider than 32 bits its cost model picks
+    8 lanes on AVX2."""
+    half, one = np.float32(0.5), np.float32(1.0)
+    x = max(x, np.float32(-80.0))
+    n = np.float32(np.int32(x * np.float32(1.4426950408889634) - half))  # x <= 0: truncation rounds
+    r = x - n * np.float32(0.693359375)
+    r = r - n * np.float32(-2.12194440e-4)
+    p = np.float32(1.9875691500e-4) * r + np.float32(1.3981999507e-3)
+    p = p * r + np.float32(8.3334519073e-3)
+    p = p * r + np.float32(4.1665795894e-2)
+    p = p * r + np.float32(1.6666665459e-1)
+    p = p * r + half
+    p = p * (r * r) + r + one
+    return p * _bits_as_f32(np.int32((n + np.float32(127.0)) * np.float32(8388608.0)))
+
+
+@njit(cache=True)
+def _sigma_vis_f32(dx, cdy, bdy, a):
+    """``(sigma, exp(-sigma))`` of a pixel at ``dx`` in float32 (``exp(0)`` where ``sigma < 0``), with
+    ``cdy = c * dy * dy`` and ``bdy = b * dy``. Not inlined by numba: LLVM inlines it after numba has
+    set the backward's ``fastmath`` flags on the caller's own instructions only, so both float32
+    kernels get bitwise the same alphas (the backward recovers the forward's transmittance)."""
+    sigma = np.float32(0.5) * (a * dx * dx + cdy) + bdy * dx
+    return sigma, _exp_f32(min(-sigma, np.float32(0.0)))
+
+
+@njit(parallel=True, cache=True)
+def _forward_kernel_rgb32(
+    tile_order, tile_start, slot_rows, slot_y, records, xs, ys, consts, n_cams, width, height, spans, lanes
+):
+    """:func:`_forward_kernel` for float32 RGB, 8 pixels at a time: colours, T_final and last entries.
+
+    Each row span's 8-pixel halves of its tile row are evaluated as one vector (``lanes`` = 8), every
+    update a select on "inside the span, alpha passes, pixel still compositing"; transmittance is
+    carried in float32 (gsplat's CUDA precision) and alpha comes from :func:`_exp_f32`, so results
+    match the generic kernel's to float32 rounding (not bitwise). The tile's state lives in one array
+    of 256-pixel planes (one base pointer: LLVM needs no runtime alias checks): transmittance, still
+    compositing (1/0), r, g, b, last entry (small integers, exact), pixel centre x."""
+    tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
+    tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
+    half, one, zero = np.float32(0.5), np.float32(1.0), np.float32(0.0)
+    alpha_max, alpha_min, t_min = consts[1], consts[2], np.float32(TRANSMITTANCE_MIN)
+    out = np.zeros((n_cams * height * width, 3), dtype=np.float32)
+    t_final = np.ones(n_cams * height * width, dtype=np.float32)
+    last = np.zeros(n_cams * height * width, dtype=np.int32)
+    for job in prange(tile_order.shape[0]):
+        tile = tile_order[job]
+        s, e = tile_start[tile], tile_start[tile + 1]
+        cam, x0, y0, x1, y1 = _tile_box(tile, tiles_x, tiles_y, width, height)
+        tw = x1 - x0
+        st = np.zeros(7 * _PLANE + LANES, dtype=np.float32)
+        st[:_PLANE] = one
+        for r in range(TILE_SIZE):
+            for q in range(TILE_SIZE):
+                st[_PLANE + r * TILE_SIZE + q] = one if r < y1 - y0 and q < tw else zero
+                st[6 * _PLANE + r * TILE_SIZE + q] = np.float32(x0 + q) + half
+        row_live = np.ones(TILE_SIZE, dtype=np.int64)
+        for k in range(s, e):
+            rec = records[k]
+            mx, my, a, b, c, opacity = rec[0], rec[1], rec[2], rec[3], rec[4], rec[5]
+            c0, c1, c2 = rec[REC_COLORS], rec[REC_COLORS + 1], rec[REC_COLORS + 2]
+            entry = np.float32(k - s + 1)
+            for py in range(slot_y[k, 0], slot_y[k, 1] + 1):
+                if row_live[py - y0] == 0:
+                    continue
+                lo_i = max(np.int64(spans[slot_rows[k] + py, 0]), x0)
+                hi_i = min(np.int64(spans[slot_rows[k] + py, 1]), x1 - 1)
+                if lo_i > hi_i:
+                    continue
+                lo, hi = xs[lo_i], xs[hi_i]
+                dy = my - ys[py]
+                cdy, bdy = c * dy * dy, b * dy
+                for h in range((lo_i - x0) // LANES, (hi_i - x0) // LANES + 1):
+                    v = st[(py - y0) * TILE_SIZE + h * LANES :]
+                    for q in range(lanes):
+                        px = v[6 * _PLANE + q]
+                        dx = mx - px
+                        sigma, vis = _sigma_vis_f32(dx, cdy, bdy, a)
+                        alpha = min(opacity * vis, alpha_max)
+                        ok = (px >= lo) & (px <= hi) & (sigma >= zero) & (alpha >= alpha_min) & (v[_PLANE + q] > zero)
+                        t = v[q]
+                        t_next = t * (one - alpha)
+                        stop = ok & (t_next <= t_min)
+                        use = ok & (t_next > t_min)
+                        w = alpha * t if use else zero
+                        v[2 * _PLANE + q] += w * c0
+                        v[3 * _PLANE + q] += w * c1
+                        v[4 * _PLANE + q] += w * c2
+                        v[q] = t_next if use else t
+                        v[_PLANE + q] = zero if stop else v[_PLANE + q]
+                        v[5 * _PLANE + q] = entry if use else v[5 * _PLANE + q]
+            if (k - s) % 8 == 7:  # rows with no pixel left compositing are skipped from here on
+                n_live = 0
+                for r in range(TILE_SIZE):
+                    row_live[r] = 1 if st[_PLANE + r * TILE_SIZE : _PLANE + (r + 1) * TILE_SIZE].max() > zero else 0
+                    n_live += row_live[r]
+                if n_live == 0:
+                    break
+        for i in range((y1 - y0) * tw):
+            j = (i // tw) * TILE_SIZE + i % tw
+            p = (cam * height + y0 + i // tw) * width + x0 + i % tw
+            out[p, 0], out[p, 1], out[p, 2] = st[2 * _PLANE + j], st[3 * _PLANE + j], st[4 * _PLANE + j]
+            t_final[p] = st[j]
+            last[p] = np.int32(st[5 * _PLANE + j])
+    return out, t_final, last
+
+
+@njit(parallel=True, cache=True, fastmath={"reassoc", "nsz"})
+def _backward_kernel_rgb32(
+    tile_order,
+    tile_start,
+    slot_rows,
+    slot_y,
+    records,
+    xs,
+    ys,
+    consts,
+    n_cams,
+    width,
+    height,
+    spans,
+    lanes,
+    t_final,
+    last,
+    grad_colors,
+    grad_q,
+    slots,
+):
+    """:func:`_backward_kernel` for float32 RGB from :func:`_forward_kernel_rgb32`'s ``t_final`` and
+    ``last``: each pixel walked back to front, 8 pixels of a tile row at a time, alphas recomputed
+    (nothing stored by the forward), float32 ``slots`` [K, N_GRAD + 3].
+
+    An entry's gradient sums are scalars reduced over the lanes: ``reassoc`` lets LLVM keep them as
+    8-wide partial sums added up once per half row (another summation order than the generic
+    kernel's, fixed for a given build, so results do not depend on the thread count). The 8 pixels
+    of a half row are skipped once the entry lies behind all their last entries. State planes:
+    transmittance, the colour behind, last entry, upstream ``grad_q``, dL/dr, g, b, pixel centre x."""
+    tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
+    tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
+    half, one, zero = np.float32(0.5), np.float32(1.0), np.float32(0.0)
+    alpha_max, alpha_min = consts[1], consts[2]
+    for job in prange(tile_order.shape[0]):
+        tile = tile_order[job]
+        s, e = tile_start[tile], tile_start[tile + 1]
+        cam, x0, y0, x1, y1 = _tile_box(tile, tiles_x, tiles_y, width, height)
+        tw = x1 - x0
+        st = np.zeros(8 * _PLANE + LANES, dtype=np.float32)
+        half_last = np.zeros(2 * TILE_SIZE, dtype=np.int64)  # per 8 pixels of a tile row: their last entry
+        k_end = 0
+        for r in range(TILE_SIZE):
+            for q in range(TILE_SIZE):
+                j = r * TILE_SIZE + q
+                st[7 * _PLANE + j] = np.float32(x0 + q) + half
+                if r < y1 - y0 and q < tw:
+                    p = (cam * height + y0 + r) * width + x0 + q
+                    st[j] = t_final[p]
+                    st[2 * _PLANE + j] = np.float32(last[p])
+                    st[3 * _PLANE + j] = grad_q[p]
+                    st[4 * _PLANE + j] = grad_colors[p, 0]
+                    st[5 * _PLANE + j] = grad_colors[p, 1]
+                    st[6 * _PLANE + j] = grad_colors[p, 2]
+                    k_end = max(k_end, np.int64(last[p]))
+                    half_last[r * 2 + q // LANES] = max(half_last[r * 2 + q // LANES], np.int64(last[p]))
+        slots[s + k_end : e] = zero  # entries behind every pixel's last one
+        for kk in range(k_end - 1, -1, -1):
+            k = s + kk
+            rec = records[k]
+            mx, my, a, b, c, opacity = rec[0], rec[1], rec[2], rec[3], rec[4], rec[5]
+            c0, c1, c2 = rec[REC_COLORS], rec[REC_COLORS + 1], rec[REC_COLORS + 2]
+            entry = np.float32(kk)
+            g_mx = g_my = g_absx = g_absy = g_ca = g_cb = g_cc = g_op = g_r = g_g = g_b = zero
+            for py in range(slot_y[k, 0], slot_y[k, 1] + 1):
+                lo_i = max(np.int64(spans[slot_rows[k] + py, 0]), x0)
+                hi_i = min(np.int64(spans[slot_rows[k] + py, 1]), x1 - 1)
+                if lo_i > hi_i:
+                    continue
+                lo, hi = xs[lo_i], xs[hi_i]
+                dy = my - ys[py]
+                cdy, bdy = c * dy * dy, b * dy
+                for h in range((lo_i - x0) // LANES, (hi_i - x0) // LANES + 1):
+                    if kk >= half_last[(py - y0) * 2 + h]:
+                        continue
+                    v = st[(py - y0) * TILE_SIZE + h * LANES :]
+                    for q in range(lanes):
+                        px = v[7 * _PLANE + q]
+                        dx = mx - px
+                        sigma, vis = _sigma_vis_f32(dx, cdy, bdy, a)
+                        raw = opacity * vis
+                        alpha = min(raw, alpha_max)
+                        ok = (px >= lo) & (px <= hi) & (sigma >= zero) & (alpha >= alpha_min)
+                        ok = ok & (v[2 * _PLANE + q] > entry)
+                        inv = one / (one - alpha)
+                        t_before = v[q] * inv
+                        weight = alpha * t_before if ok else zero
+                        gr, gg, gb = v[4 * _PLANE + q], v[5 * _PLANE + q], v[6 * _PLANE + q]
+                        gc = gr * c0 + gg * c1 + gb * c2
+                        behind = v[_PLANE + q]
+                        grad_alpha = t_before * gc - (behind + v[3 * _PLANE + q]) * inv
+                        v[q] = t_before if ok else v[q]
+                        v[_PLANE + q] = behind + weight * gc
+                        g_r += weight * gr
+                        g_g += weight * gg
+                        g_b += weight * gb
+                        # alpha clamped at ALPHA_MAX: no gradient to the geometry or opacity.
+                        ga = grad_alpha if ok & (raw <= alpha_max) else zero
+                        gs = -raw * ga  # d/dsigma
+                        g_op += vis * ga
+                        gmx = gs * (a * dx + b * dy)
+                        gmy = gs * (b * dx + c * dy)
+                        g_mx += gmx
+                        g_my += gmy
+                        g_absx += abs(gmx)
+                        g_absy += abs(gmy)
+                        g_ca += half * gs * dx * dx
+                        g_cb += gs * dx * dy
+                        g_cc += half * gs * dy * dy
+            slots[k, 0], slots[k, 1], slots[k, 2], slots[k, 3] = g_mx, g_my, g_absx, g_absy
+            slots[k, 4], slots[k, 5], slots[k, 6], slots[k, 7] = g_ca, g_cb, g_cc, g_op
+            slots[k, N_GRAD], slots[k, N_GRAD + 1], slots[k, N_GRAD + 2] = g_r, g_g, g_b
+
+
 @njit(parallel=True, cache=True)
 def _reduce_slots(slots, rec_start, rec_slots, entries, g_means2d, g_abs, g_conics, g_opac, g_colors):
     """Sum each record's (tile, entry) slots in increasing tile order (deterministic) into the
@@ -684,16 +953,22 @@ def warm_up(dtype: torch.dtype = torch.float32) -> float:
                 height=8,
             )
             with torch.enable_grad():
-                colors, alphas, _ = rasterization(
-                    **params, **camera, sh_degree=3, rasterize_mode="antialiased", render_mode="RGB+ED", absgrad=True
-                )
-                (colors.sum() + alphas.sum()).backward()
+                for render_mode in ("RGB", "RGB+ED"):  # float32 RGB has kernels of its own
+                    colors, alphas, _ = rasterization(
+                        **params,
+                        **camera,
+                        sh_degree=3,
+                        rasterize_mode="antialiased",
+                        render_mode=render_mode,
+                        absgrad=True,
+                    )
+                    (colors.sum() + alphas.sum()).backward()
     finally:
         _WARMING.discard(dtype)
     seconds = time.perf_counter() - started
     kernels = (
         _visible_by_depth, _make_records, _row_spans, _tile_pixels, _bin_tiles, _gather_rows, _forward_kernel,
-        _backward_kernel, _reduce_slots,
+        _backward_kernel, _forward_kernel_rgb32, _backward_kernel_rgb32, _reduce_slots,
         _project_forward, _project_backward, _sh_forward, _sh_backward,
     )  # fmt: skip
     misses = sum(sum(k.stats.cache_misses.values()) for k in kernels)
@@ -765,17 +1040,25 @@ class _TileComposite(torch.autograd.Function):
                 height,
                 spans,
             )
+        rgb32 = dtype == torch.float32 and dim == 3 and _spans_suit_lanes(tile_start, vis_start, slot_y)
         with _stage("forward kernel"):
-            n_vis = int(vis_start[-1])
-            vis_store = _take_scratch("vis", n_vis, np_dtype) if n_vis <= VIS_STORE_MAX else np.zeros(0, np_dtype)
-            out, t_final, last = _forward_kernel(*kernel_args, vis_store)
+            if rgb32:
+                kernel_args = kernel_args[:2] + kernel_args[3:] + (LANES,)
+                out, t_final, last = _forward_kernel_rgb32(*kernel_args)
+                extra, ctx.leases = (), []
+            else:
+                n_vis = int(vis_start[-1])
+                vis_store = _take_scratch("vis", n_vis, np_dtype) if n_vis <= VIS_STORE_MAX else np.zeros(0, np_dtype)
+                out, t_final, last = _forward_kernel(*kernel_args, vis_store)
+                extra = (vis_store,)
+                ctx.leases = [_ScratchLease("vis", vis_store)] if vis_store.size else []
         out = torch.from_numpy(out)
         t_final_t = torch.from_numpy(t_final).to(dtype)
         if backgrounds is not None:
             out = out + (t_final_t.reshape(n_cams, -1, 1) * backgrounds[:, None, :].detach()).reshape(-1, dim)
         ctx.save_for_backward(means2d, backgrounds)
-        ctx.kernel_args = kernel_args + (t_final, last, vis_store)
-        ctx.leases = [_ScratchLease("vis", vis_store)] if vis_store.size else []
+        ctx.kernel_args = kernel_args + (t_final, last) + extra
+        ctx.rgb32, ctx.t_final = rgb32, t_final
         ctx.slot_lists = (rec_start, rec_slots, entries)
         ctx.meta = (n_cams, n, dim, absgrad)
         return out.reshape(n_cams, height, width, dim), (1.0 - t_final_t).reshape(n_cams, height, width, 1)
@@ -785,7 +1068,7 @@ class _TileComposite(torch.autograd.Function):
     def backward(ctx, grad_colors: Tensor, grad_alphas: Tensor):
         means2d, backgrounds = ctx.saved_tensors
         n_cams, n, dim, absgrad = ctx.meta
-        t_final = ctx.kernel_args[-3]
+        t_final = ctx.t_final
         dtype = grad_colors.dtype
         grad_colors = grad_colors.reshape(n_cams, -1, dim)
         upstream = -grad_alphas.reshape(n_cams, -1).double()
@@ -793,13 +1076,17 @@ class _TileComposite(torch.autograd.Function):
             upstream = upstream + (grad_colors * backgrounds[:, None, :]).sum(-1).double()
         grad_q = torch.from_numpy(t_final) * upstream.reshape(-1)
         with _stage("backward kernel"):
-            n_slots = ctx.kernel_args[5].shape[0]
-            slot_buf = _take_scratch("slots", n_slots * (N_GRAD + dim), np.float64)
+            n_slots = ctx.slot_lists[1].shape[0]
+            slot_dtype = np.float32 if ctx.rgb32 else np.float64
+            slot_buf = _take_scratch("slots", n_slots * (N_GRAD + dim), slot_dtype)
             slots = slot_buf[: n_slots * (N_GRAD + dim)].reshape(n_slots, N_GRAD + dim)
-            _backward_kernel(
+            kernel, grad_dtype = (
+                (_backward_kernel_rgb32, torch.float32) if ctx.rgb32 else (_backward_kernel, torch.float64)
+            )
+            kernel(
                 *ctx.kernel_args,
-                grad_colors.reshape(-1, dim).double().contiguous().numpy(),
-                grad_q.contiguous().numpy(),
+                grad_colors.reshape(-1, dim).to(grad_dtype).contiguous().numpy(),
+                grad_q.to(grad_dtype).contiguous().numpy(),
                 slots,
             )
         with _stage("reduce+scatter"):
