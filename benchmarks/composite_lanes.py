@@ -97,7 +97,7 @@ def span_width(renders: List[Dict]) -> Tuple[float, bool]:
     choose = cpu_fast._spans_suit_lanes
 
     def spy(tile_start, vis_start, slot_y):
-        seen.append((int(vis_start[-1]), int((slot_y[:, 1] - slot_y[:, 0]).sum()) + len(slot_y)))
+        seen.append(cpu_fast.span_counts(vis_start, slot_y))
         return choose(tile_start, vis_start, slot_y)
 
     cpu_fast._spans_suit_lanes = spy

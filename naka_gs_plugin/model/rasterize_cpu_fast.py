@@ -582,6 +582,12 @@ below, most lanes of a half row idle and the generic kernels are faster (about 1
 4.6 pixels, 0.85x at 6.5, 0.77x at 8.9 for a render's forward and backward: docs/cpu.md)."""
 
 
+def span_counts(vis_start: Int[np.ndarray, " K1"], slot_y: Int[np.ndarray, "K 2"]) -> Tuple[int, int]:
+    """A render's span pixels and (list entry, tile row) pairs over all its tiles: their ratio is the
+    row-span width ``RGB32_MIN_RUN`` is compared with."""
+    return int(vis_start[-1]), int((slot_y[:, 1] - slot_y[:, 0]).sum()) + len(slot_y)
+
+
 def _spans_suit_lanes(
     tile_start: Int[np.ndarray, " T1"], vis_start: Int[np.ndarray, " K1"], slot_y: Int[np.ndarray, "K 2"]
 ) -> bool:
@@ -589,8 +595,8 @@ def _spans_suit_lanes(
     tiles (``RGB32_MIN_RUN``) and no list too long for their float32 entry counts."""
     if len(slot_y) == 0 or int(np.diff(tile_start).max()) >= _MAX_LAST_F32:
         return False
-    rows = int((slot_y[:, 1] - slot_y[:, 0]).sum()) + len(slot_y)
-    return int(vis_start[-1]) >= RGB32_MIN_RUN * rows
+    pixels, rows = span_counts(vis_start, slot_y)
+    return pixels >= RGB32_MIN_RUN * rows
 
 
 @intrinsic
