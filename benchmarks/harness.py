@@ -1,4 +1,5 @@
-"""What the benches share: one measurement per fresh process, and that process's own peak memory.
+"""What the benches share: one measurement per fresh process, and that process's own peak memory; a
+command's wall and peak memory (:func:`timed`).
 
 Peak memory is the kernel's peak resident set size of the process (``VmHWM``), reset through
 ``/proc/self/clear_refs`` just before the measured work when only its increase is wanted.
@@ -9,7 +10,11 @@ fork and exec.) A spawned process starts from a fresh interpreter, so its ``VmHW
 from __future__ import annotations
 
 import multiprocessing
+import re
+import subprocess
+import sys
 from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
 from typing import Any, Callable
 
 
@@ -38,3 +43,14 @@ def run_isolated(fn: Callable[..., Any], *args: Any) -> Any:
     """``fn(*args)`` in a fresh spawned process (``fn`` importable at module level); its result comes back."""
     with ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn")) as pool:
         return pool.submit(fn, *args).result()
+
+
+def timed(cmd: list, env: dict, log: Path) -> tuple[float, float]:
+    """(wall s, peak RSS GB) of ``cmd`` under /usr/bin/time; its output goes to ``log``."""
+    with open(log, "w") as out:
+        res = subprocess.run(["/usr/bin/time", "-f", "TIME %e %M", *cmd], env=env, stdout=out, stderr=subprocess.STDOUT)
+    text = log.read_text()
+    if res.returncode != 0:
+        sys.exit(f"[naka-gs bench] {cmd[0]} failed (exit {res.returncode}); see {log}")
+    wall, rss_kb = re.findall(r"TIME ([\d.]+) (\d+)", text)[-1]
+    return float(wall), int(rss_kb) / 2**20

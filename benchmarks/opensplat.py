@@ -20,8 +20,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
-import subprocess
 import sys
 import tempfile
 from dataclasses import dataclass
@@ -30,6 +28,7 @@ from typing import Literal, Optional
 
 import tyro
 
+from benchmarks.harness import timed
 from benchmarks.machine import describe_cpu
 
 
@@ -81,17 +80,6 @@ def prepare(scene: Path, images: str, work: Path) -> tuple[Path, Path]:
         if not (ours / name).exists():
             (ours / name).symlink_to(target.resolve())
     return project, ours
-
-
-def timed(cmd: list, env: dict, log: Path) -> tuple[float, float]:
-    """(wall s, peak RSS GB) of ``cmd`` under /usr/bin/time; its output goes to ``log``."""
-    with open(log, "w") as out:
-        res = subprocess.run(["/usr/bin/time", "-f", "TIME %e %M", *cmd], env=env, stdout=out, stderr=subprocess.STDOUT)
-    text = log.read_text()
-    if res.returncode != 0:
-        sys.exit(f"[naka-gs bench] {cmd[0]} failed (exit {res.returncode}); see {log}")
-    wall, rss_kb = re.findall(r"TIME ([\d.]+) (\d+)", text)[-1]
-    return float(wall), int(rss_kb) / 2**20
 
 
 def ply_vertices(path: Path) -> int:

@@ -6,7 +6,8 @@ from pathlib import Path
 import pycolmap
 import pytest
 
-from benchmarks.opensplat import prepare, timed
+from benchmarks.harness import timed
+from benchmarks.opensplat import prepare
 from tests.helpers import SHARED_DATA
 
 SOFA = SHARED_DATA / "lom" / "sofa"
