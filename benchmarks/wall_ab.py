@@ -162,10 +162,18 @@ def main(args: Args) -> List[Tuple[str, Dict, Dict]]:
         sys.exit("--phases: give at least two increasing step numbers")
     if not Path("/usr/bin/time").exists():
         sys.exit("benchmarks.wall_ab needs GNU time (/usr/bin/time): apt-get install time")
-    print(describe_cpu())
+    for option, revision in (("--old", args.old), ("--new", args.new)):
+        known = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--verify", "--quiet", f"{revision}^{{commit}}"],
+                               capture_output=True)  # fmt: skip
+        if known.returncode != 0:
+            sys.exit(f"{option} {revision}: not a commit of {REPO} -- give a hash, branch or tag (git log)")
     work = args.work or Path(tempfile.mkdtemp(prefix="naka-gs-wall-ab-"))
-    work.mkdir(parents=True, exist_ok=True)
     trees = {side: work / f"tree-{side}" for side in ("old", "new")}
+    used = [str(work / name) for name in ("tree-old", "tree-new", "old", "new") if (work / name).exists()]
+    if used:
+        sys.exit(f"--work {work}: holds an earlier run ({', '.join(used)}) -- give a new folder")
+    work.mkdir(parents=True, exist_ok=True)
+    print(describe_cpu())
     try:
         hashes = {side: checkout(rev, trees[side]) for side, rev in (("old", args.old), ("new", args.new))}
         print(f"old {args.old} ({hashes['old']}), new {args.new} ({hashes['new']}), `ns-train {args.method}`, "

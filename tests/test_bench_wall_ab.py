@@ -118,3 +118,12 @@ def test_step_times_read_nerfstudios_progress_lines():
 def test_a_folder_that_is_not_a_scene_is_refused(tmp_path):
     with pytest.raises(SystemExit, match="--scenes: no transforms_train.json in"):
         bench.entrypoint(["--old", "HEAD", "--scenes", str(tmp_path)])
+
+
+def test_an_unknown_revision_and_a_used_work_folder_are_refused(fake_project, tmp_path):
+    _, old, scenes, _ = fake_project
+    with pytest.raises(SystemExit, match="--old nosuchrev: not a commit of"):
+        bench.entrypoint(["--old", "nosuchrev", "--scenes", str(scenes[0])])
+    (tmp_path / "work" / "old").mkdir(parents=True)
+    with pytest.raises(SystemExit, match="holds an earlier run"):
+        bench.entrypoint(["--old", old, "--scenes", str(scenes[0]), "--work", str(tmp_path / "work")])
