@@ -85,14 +85,10 @@ def phase_medians(times: Dict[int, float], phases: Sequence[int]) -> List[Option
 def missing_entry_points(tree: Path) -> List[str]:
     """Names that this environment's naka-gs method entry points give which ``tree``'s modules lack."""
     wanted = [
-        ep.value
-        for ep in metadata.entry_points(group="nerfstudio.method_configs")
-        if ep.value.startswith("naka_gs_plugin.")
+        ep for ep in metadata.entry_points(group="nerfstudio.method_configs") if ep.module.startswith("naka_gs_plugin.")
     ]
-    probe = "import importlib, sys\n" + "".join(
-        f"sys.stdout.write('' if hasattr(importlib.import_module({m!r}), {a!r}) else {v!r} + '\\n')\n"
-        for v in wanted
-        for m, a in [v.split(":")]
+    probe = "import importlib\n" + "".join(
+        f"if not hasattr(importlib.import_module({ep.module!r}), {ep.attr!r}): print({ep.value!r})\n" for ep in wanted
     )
     env = dict(os.environ, PYTHONPATH=str(tree))
     # From inside the tree: ``python -c`` puts its working directory first on sys.path.
