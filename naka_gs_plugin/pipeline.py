@@ -30,7 +30,7 @@ from torch.cuda.amp.grad_scaler import GradScaler
 from naka_gs_plugin.data.cache import content_hash
 from naka_gs_plugin.data.lowlight_dataparser import read_split
 from naka_gs_plugin.datamanager import LowLightDatamanager, LowLightDatamanagerConfig
-from naka_gs_plugin.model.naka_gs_model import NakaGSModelConfig
+from naka_gs_plugin.model.naka_gs_model import NakaGSModelConfig, numba_available
 from naka_gs_plugin.points.seeding import (
     PointInitConfig,
     SeedResult,
@@ -88,6 +88,11 @@ class NakaGSPipeline(VanillaPipeline):
         local_rank: int = 0,
         grad_scaler: Optional[GradScaler] = None,
     ):
+        if torch.device(device).type == "cpu" and config.model.rasterizer in ("auto", "cpu-fast") and numba_available():
+            # The kernels compile in a child process while the datamanager enhances the training images.
+            from naka_gs_plugin.model.rasterize_cpu_fast import compile_in_background
+
+            compile_in_background()
         # The config is handed back unchanged (it is saved and reloaded by ns-eval, ns-viewer...).
         build = config.datamanager._target
         config.datamanager._target = partial(self._datamanager_with_seed, build, test_mode == "val")

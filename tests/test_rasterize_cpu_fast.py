@@ -447,3 +447,48 @@ def test_first_render_keeps_pytorch_thread_count():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip().splitlines()[-1] == "1"
+
+
+@pytest.fixture
+def no_kernels_yet(monkeypatch):
+    """This process as if nothing were compiled nor on disk, with no background compile started."""
+    monkeypatch.setattr(rasterize_cpu_fast, "_READY", {})
+    monkeypatch.setattr(rasterize_cpu_fast, "_BACKGROUND", {})
+    monkeypatch.setattr(rasterize_cpu_fast, "kernels_on_disk", lambda: False)
+
+
+def _child(monkeypatch, code):
+    import sys
+
+    monkeypatch.setattr(rasterize_cpu_fast, "BACKGROUND_COMMAND", (sys.executable, "-c", code))
+
+
+def test_first_render_waits_for_the_background_compile(no_kernels_yet, monkeypatch, tmp_path):
+    """One child at a time; the first render of float32 starts only once it has finished."""
+    done = tmp_path / "done"
+    _child(monkeypatch, f"import time, pathlib; time.sleep(1.0); pathlib.Path({str(done)!r}).touch()")
+    assert rasterize_cpu_fast.compile_in_background()
+    assert not rasterize_cpu_fast.compile_in_background()  # the first is still running
+    rasterize_cpu_fast.warm_up(F32)
+    assert done.exists()
+    assert not rasterize_cpu_fast.compile_in_background()  # float32 is ready in this process now
+
+
+def test_a_failed_background_compile_is_said_and_the_render_compiles(no_kernels_yet, monkeypatch):
+    logged = []
+    monkeypatch.setattr(rasterize_cpu_fast.CONSOLE, "log", lambda message, **_: logged.append(message))
+    _child(monkeypatch, "raise SystemExit(3)")
+    assert rasterize_cpu_fast.compile_in_background()
+    assert rasterize_cpu_fast.warm_up(F32) > 0
+    assert any(m.endswith("background compile failed (exit code 3); compiling here") for m in logged), logged
+    assert F32 in rasterize_cpu_fast._READY
+
+
+def test_no_background_compile_when_the_training_kernels_are_on_disk(monkeypatch):
+    """After :func:`warm_training_kernels` (what the child runs) every training kernel is in numba's disk
+    cache, and a new process would start no child."""
+    rasterize_cpu_fast.warm_training_kernels()
+    assert rasterize_cpu_fast.kernels_on_disk()
+    monkeypatch.setattr(rasterize_cpu_fast, "_READY", {})
+    monkeypatch.setattr(rasterize_cpu_fast, "_BACKGROUND", {})
+    assert not rasterize_cpu_fast.compile_in_background()

@@ -82,7 +82,7 @@ class NakaGSModelConfig(SplatfactoModelConfig):
         self.__dict__.update(state)
 
 
-def _numba_available() -> bool:
+def numba_available() -> bool:
     """Whether the cpu-fast rasterizer's compiler (numba) imports."""
     try:
         import numba  # noqa: F401
@@ -174,7 +174,7 @@ class NakaGSModel(SplatfactoModel):
     def _backend(self, device: torch.device) -> str:
         choice = self.config.rasterizer
         if choice == "auto":
-            choice = "gsplat" if device.type == "cuda" else ("cpu-fast" if _numba_available() else "torch")
+            choice = "gsplat" if device.type == "cuda" else ("cpu-fast" if numba_available() else "torch")
         if choice == "gsplat" and device.type != "cuda":
             raise RasterizerOptionError(
                 f"rasterizer 'gsplat' needs CUDA tensors but the model is on {device} -- "

@@ -36,12 +36,17 @@ derive bitwise the same alphas from each other, and agree with the generic kerne
 rounding. Kernels are compiled on first use per dtype
 (tens of seconds) and cached on disk by numba (``cache=True``: next to this file, or under
 ``NUMBA_CACHE_DIR`` / the user cache directory when the package directory is not writable); the
-first call logs how long the compile or cache load took. ``numba.set_num_threads`` sets the
+first call logs how long the compile or cache load took. The naka-gs pipeline starts the float32
+kernels' compile in a child process before it enhances the training images
+(:func:`compile_in_background`), so that on a first run the two overlap. ``numba.set_num_threads`` sets the
 number of threads.
 """
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 import threading
 import time
 from contextlib import contextmanager
@@ -933,12 +938,100 @@ def _stage(name: str) -> Iterator[None]:
     STAGE_SECONDS[name] = STAGE_SECONDS.get(name, 0.0) + time.perf_counter() - started
 
 
+_BACKGROUND: Dict[str, subprocess.Popen] = {}
+
+BACKGROUND_COMMAND = (
+    sys.executable,
+    "-c",
+    "from naka_gs_plugin.model.rasterize_cpu_fast import warm_training_kernels; warm_training_kernels()",
+)
+"""The child process of :func:`compile_in_background`."""
+
+
+def _raster_kernels() -> Tuple:
+    return (
+        _visible_by_depth, _make_records, _row_spans, _tile_pixels, _bin_tiles, _gather_rows, _forward_kernel,
+        _backward_kernel, _forward_kernel_rgb32, _backward_kernel_rgb32, _reduce_slots,
+        _project_forward, _project_backward, _sh_forward, _sh_backward,
+    )  # fmt: skip
+
+
+def _training_kernels() -> Tuple:
+    from naka_gs_plugin.model import composite_cpu_fast, ssim_cpu_fast
+
+    return _raster_kernels() + (
+        ssim_cpu_fast._forward_kernel, ssim_cpu_fast._backward_kernel,
+        composite_cpu_fast._forward_kernel, composite_cpu_fast._backward_kernel,
+    )  # fmt: skip
+
+
+def kernels_on_disk() -> bool:
+    """Whether numba's disk cache holds an index for every kernel a training step runs (whether it is
+    current for this source and machine, numba decides when it loads)."""
+    try:
+        return all(os.path.exists(kernel._cache._cache_file._index_path) for kernel in _training_kernels())
+    except AttributeError:  # a numba without this cache layout: assume nothing is on disk
+        return False
+
+
+def compile_in_background() -> bool:
+    """Start compiling the float32 kernels of a training step in a child process (one thread), unless
+    they are on disk already; returns whether it started one. numba compiles in Python and holds the
+    GIL, so a thread would stall the caller's work, while a process compiles on the second core
+    during what the caller does meanwhile (the training images' enhancement, the seed points) and
+    leaves the kernels in numba's disk cache. The first render waits for it (:func:`warm_up`), then
+    loads them; if the child failed, that render compiles them itself, as without a child."""
+    if torch.float32 in _READY or "float32" in _BACKGROUND or kernels_on_disk():
+        return False
+    env = dict(os.environ, OMP_NUM_THREADS="1", NUMBA_NUM_THREADS="1")
+    _BACKGROUND["float32"] = subprocess.Popen(
+        BACKGROUND_COMMAND, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
+    return True
+
+
+def warm_training_kernels() -> None:
+    """Compile (or load) the float32 kernels of a training step: the rasterizer's, SSIM's and compositing's,
+    by running each on a tiny input forward and backward (:func:`compile_in_background`'s child)."""
+    from naka_gs_plugin.model.composite_cpu_fast import composite_cpu_fast
+    from naka_gs_plugin.model.ssim import FAST_TAPS, SSIMLoss
+
+    warm_up(torch.float32)
+    size = FAST_TAPS + 1
+    render = torch.rand(size, size, 3, requires_grad=True)
+    alpha = torch.rand(size, size, 1, requires_grad=True)
+    gain, offset = torch.ones(3, requires_grad=True), torch.zeros(3, requires_grad=True)
+    composite_cpu_fast(render, alpha, torch.zeros(3)).sum().backward()
+    image = composite_cpu_fast(render, alpha, torch.zeros(3), gain, offset).permute(2, 0, 1)[None]
+    SSIMLoss(data_range=1.0, size_average=True, channel=3)(image, torch.rand(1, 3, size, size)).backward()
+
+
+def _wait_for_background(dtype: torch.dtype) -> None:
+    child = _BACKGROUND.pop(str(dtype).removeprefix("torch."), None)
+    if child is None:
+        return
+    if child.poll() is None:
+        started = time.perf_counter()
+        child.wait()
+        CONSOLE.log(
+            f"[naka-gs] cpu-fast rasterizer: waited {time.perf_counter() - started:.1f} s for the background compile",
+            markup=False,
+        )
+    if child.returncode != 0:
+        CONSOLE.log(
+            f"[naka-gs] cpu-fast rasterizer: background compile failed (exit code {child.returncode}); compiling here",
+            markup=False,
+        )
+
+
 def warm_up(dtype: torch.dtype = torch.float32) -> float:
     """Compile (or load from numba's disk cache) every kernel for ``dtype`` by rendering a tiny
     scene forward and backward; returns the seconds taken and logs them once per dtype and
-    process. Called by the first render of a dtype."""
+    process. Called by the first render of a dtype, after :func:`compile_in_background`'s child
+    has finished, if there is one."""
     if dtype in _READY or dtype in _WARMING:
         return 0.0
+    _wait_for_background(dtype)
     _WARMING.add(dtype)
     started = time.perf_counter()
     # The first parallel kernel starts numba's OpenMP pool: keep the caller's PyTorch thread count.
@@ -972,12 +1065,7 @@ def warm_up(dtype: torch.dtype = torch.float32) -> float:
     finally:
         _WARMING.discard(dtype)
     seconds = time.perf_counter() - started
-    kernels = (
-        _visible_by_depth, _make_records, _row_spans, _tile_pixels, _bin_tiles, _gather_rows, _forward_kernel,
-        _backward_kernel, _forward_kernel_rgb32, _backward_kernel_rgb32, _reduce_slots,
-        _project_forward, _project_backward, _sh_forward, _sh_backward,
-    )  # fmt: skip
-    misses = sum(sum(k.stats.cache_misses.values()) for k in kernels)
+    misses = sum(sum(k.stats.cache_misses.values()) for k in _raster_kernels())
     how = "compiled (and cached on disk)" if misses else "loaded from numba's disk cache"
     CONSOLE.log(
         f"[naka-gs] cpu-fast rasterizer: {dtype} kernels {how} in {seconds:.1f} s; {numba.get_num_threads()} threads",
