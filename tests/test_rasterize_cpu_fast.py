@@ -492,3 +492,18 @@ def test_no_background_compile_when_the_training_kernels_are_on_disk(monkeypatch
     monkeypatch.setattr(rasterize_cpu_fast, "_READY", {})
     monkeypatch.setattr(rasterize_cpu_fast, "_BACKGROUND", {})
     assert not rasterize_cpu_fast.compile_in_background()
+
+
+def test_the_background_child_imports_this_checkout_whatever_its_working_directory(tmp_path):
+    """A copy of the package in the child's working directory (a clone, a worktree) is not the one it compiles."""
+    import subprocess
+    import sys
+
+    shadow = tmp_path / "naka_gs_plugin" / "model"
+    shadow.mkdir(parents=True)
+    for folder in (shadow.parent, shadow):
+        (folder / "__init__.py").write_text("")
+    (shadow / "rasterize_cpu_fast.py").write_text("")
+    code = rasterize_cpu_fast.child_code("print(m.__file__)")
+    out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == rasterize_cpu_fast.__file__

@@ -51,6 +51,7 @@ import threading
 import time
 from contextlib import contextmanager
 from functools import partial
+from pathlib import Path
 from typing import Dict, Iterator, Literal, Optional, Set, Tuple
 
 import numba
@@ -940,11 +941,17 @@ def _stage(name: str) -> Iterator[None]:
 
 _BACKGROUND: Dict[str, subprocess.Popen] = {}
 
-BACKGROUND_COMMAND = (
-    sys.executable,
-    "-c",
-    "from naka_gs_plugin.model.rasterize_cpu_fast import warm_training_kernels; warm_training_kernels()",
-)
+_PACKAGE_ROOT = str(Path(__file__).resolve().parents[2])
+
+
+def child_code(statement: str) -> str:
+    """Python code running ``statement`` with this very module imported as ``m``: numba caches a kernel per
+    source file, and ``python -c`` would put the working directory first on ``sys.path``, where another
+    checkout of the package may be (a worktree, a clone)."""
+    return f"import sys; sys.path.insert(0, {_PACKAGE_ROOT!r}); import {__name__} as m; {statement}"
+
+
+BACKGROUND_COMMAND = (sys.executable, "-c", child_code("m.warm_training_kernels()"))
 """The child process of :func:`compile_in_background`."""
 
 
