@@ -99,6 +99,9 @@ def missing_entry_points(tree: Path) -> List[str]:
 def checkout(revision: str, path: Path) -> str:
     """A detached worktree of ``revision`` at ``path``; its short hash. Entry points it lacks are bound to its
     default method (module docstring)."""
+    # A worktree whose folder was deleted (an interrupted run's work folder) stays registered, and git then
+    # refuses to add one at that path again.
+    subprocess.run(["git", "-C", str(REPO), "worktree", "prune"], check=True, capture_output=True)
     subprocess.run(["git", "-C", str(REPO), "worktree", "add", "--detach", str(path), revision], check=True,
                    capture_output=True)  # fmt: skip
     short = subprocess.run(["git", "-C", str(path), "rev-parse", "--short", "HEAD"], check=True, capture_output=True,

@@ -4,6 +4,7 @@ figures read from what ns-train and ns-eval wrote (stand-ins for both here: a re
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 import textwrap
@@ -127,3 +128,14 @@ def test_an_unknown_revision_and_a_used_work_folder_are_refused(fake_project, tm
     (tmp_path / "work" / "old").mkdir(parents=True)
     with pytest.raises(SystemExit, match="holds an earlier run"):
         bench.entrypoint(["--old", old, "--scenes", str(scenes[0]), "--work", str(tmp_path / "work")])
+
+
+@pytest.mark.skipif(not Path("/usr/bin/time").exists(), reason="needs GNU time (/usr/bin/time)")
+def test_a_work_folder_deleted_after_an_interrupted_run_can_be_used_again(fake_project, tmp_path):
+    """An interrupted run leaves its worktrees registered; with its work folder deleted, the same folder works."""
+    repo, old, scenes, _ = fake_project
+    work = tmp_path / "work"
+    _git(repo, "worktree", "add", "--detach", str(work / "tree-old"), old)  # as an interrupted run left it
+    shutil.rmtree(work)
+    rows = bench.entrypoint(["--old", old, "--scenes", str(scenes[0]), "--work", str(work)])
+    assert [name for name, _, _ in rows] == ["a"]
