@@ -30,7 +30,7 @@ from torch.cuda.amp.grad_scaler import GradScaler
 from naka_gs_plugin.data.cache import content_hash
 from naka_gs_plugin.data.lowlight_dataparser import read_split
 from naka_gs_plugin.datamanager import LowLightDatamanager, LowLightDatamanagerConfig
-from naka_gs_plugin.model.naka_gs_model import NakaGSModelConfig, numba_available
+from naka_gs_plugin.model.naka_gs_model import NakaGSModelConfig, resolve_rasterizer
 from naka_gs_plugin.points.seeding import (
     PointInitConfig,
     SeedResult,
@@ -88,7 +88,10 @@ class NakaGSPipeline(VanillaPipeline):
         local_rank: int = 0,
         grad_scaler: Optional[GradScaler] = None,
     ):
-        if torch.device(device).type == "cpu" and config.model.rasterizer in ("auto", "cpu-fast") and numba_available():
+        if (
+            torch.device(device).type == "cpu"
+            and resolve_rasterizer(config.model.rasterizer, torch.device(device)) == "cpu-fast"
+        ):
             # The kernels compile in a child process while the datamanager enhances the training images.
             from naka_gs_plugin.model.rasterize_cpu_fast import compile_in_background
 

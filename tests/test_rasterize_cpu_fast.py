@@ -451,7 +451,9 @@ def test_first_render_keeps_pytorch_thread_count():
 
 @pytest.fixture
 def no_kernels_yet(monkeypatch):
-    """This process as if nothing were compiled nor on disk, with no background compile started."""
+    """This process as if nothing were compiled nor on disk, with no background compile started (the kernels
+    compiled in fact, so that a render that did not wait would finish before a child that sleeps)."""
+    rasterize_cpu_fast.warm_up(F32)
     monkeypatch.setattr(rasterize_cpu_fast, "_READY", {})
     monkeypatch.setattr(rasterize_cpu_fast, "_BACKGROUND", {})
     monkeypatch.setattr(rasterize_cpu_fast, "kernels_on_disk", lambda: False)

@@ -82,13 +82,21 @@ class NakaGSModelConfig(SplatfactoModelConfig):
         self.__dict__.update(state)
 
 
-def numba_available() -> bool:
+def _numba_available() -> bool:
     """Whether the cpu-fast rasterizer's compiler (numba) imports."""
     try:
         import numba  # noqa: F401
     except ImportError:
         return False
     return True
+
+
+def resolve_rasterizer(choice: str, device: torch.device) -> str:
+    """``--pipeline.model.rasterizer`` with ``auto`` resolved for tensors on ``device`` (whether the choice can run
+    there, the model checks at its first render)."""
+    if choice != "auto":
+        return choice
+    return "gsplat" if device.type == "cuda" else ("cpu-fast" if _numba_available() else "torch")
 
 
 def all_finite(tensor: Tensor) -> bool:
@@ -172,9 +180,7 @@ class NakaGSModel(SplatfactoModel):
 
     # ------------------------------------------------------------------ rasterization
     def _backend(self, device: torch.device) -> str:
-        choice = self.config.rasterizer
-        if choice == "auto":
-            choice = "gsplat" if device.type == "cuda" else ("cpu-fast" if numba_available() else "torch")
+        choice = resolve_rasterizer(self.config.rasterizer, device)
         if choice == "gsplat" and device.type != "cuda":
             raise RasterizerOptionError(
                 f"rasterizer 'gsplat' needs CUDA tensors but the model is on {device} -- "

@@ -939,7 +939,8 @@ def _stage(name: str) -> Iterator[None]:
     STAGE_SECONDS[name] = STAGE_SECONDS.get(name, 0.0) + time.perf_counter() - started
 
 
-_BACKGROUND: Dict[str, subprocess.Popen] = {}
+_BACKGROUND: Dict[torch.dtype, subprocess.Popen] = {}
+"""The running background compile (:func:`compile_in_background`), by the dtype of its kernels."""
 
 _PACKAGE_ROOT = str(Path(__file__).resolve().parents[2])
 
@@ -988,10 +989,10 @@ def compile_in_background() -> bool:
     during what the caller does meanwhile (the training images' enhancement, the seed points) and
     leaves the kernels in numba's disk cache. The first render waits for it (:func:`warm_up`), then
     loads them; if the child failed, that render compiles them itself, as without a child."""
-    if torch.float32 in _READY or "float32" in _BACKGROUND or kernels_on_disk():
+    if torch.float32 in _READY or torch.float32 in _BACKGROUND or kernels_on_disk():
         return False
     env = dict(os.environ, OMP_NUM_THREADS="1", NUMBA_NUM_THREADS="1")
-    _BACKGROUND["float32"] = subprocess.Popen(
+    _BACKGROUND[torch.float32] = subprocess.Popen(
         BACKGROUND_COMMAND, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
     )
     return True
@@ -1014,7 +1015,7 @@ def warm_training_kernels() -> None:
 
 
 def _wait_for_background(dtype: torch.dtype) -> None:
-    child = _BACKGROUND.pop(str(dtype).removeprefix("torch."), None)
+    child = _BACKGROUND.pop(dtype, None)
     if child is None:
         return
     if child.poll() is None:
