@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import sys
 import tempfile
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
@@ -88,19 +89,21 @@ class NakaGSPipeline(VanillaPipeline):
         local_rank: int = 0,
         grad_scaler: Optional[GradScaler] = None,
     ):
+        background = nullcontext()
         if (
             torch.device(device).type == "cpu"
             and resolve_rasterizer(config.model.rasterizer, torch.device(device)) == "cpu-fast"
         ):
             # The kernels compile in a child process while the datamanager enhances the training images.
-            from naka_gs_plugin.model.rasterize_cpu_fast import compile_in_background
+            from naka_gs_plugin.model.rasterize_cpu_fast import compiling_in_background
 
-            compile_in_background()
+            background = compiling_in_background()
         # The config is handed back unchanged (it is saved and reloaded by ns-eval, ns-viewer...).
         build = config.datamanager._target
         config.datamanager._target = partial(self._datamanager_with_seed, build, test_mode == "val")
         try:
-            super().__init__(config, device, test_mode, world_size, local_rank, grad_scaler)
+            with background:
+                super().__init__(config, device, test_mode, world_size, local_rank, grad_scaler)
         finally:
             config.datamanager._target = build
 

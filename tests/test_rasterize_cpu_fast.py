@@ -509,3 +509,29 @@ def test_the_background_child_imports_this_checkout_whatever_its_working_directo
     code = rasterize_cpu_fast.child_code("print(m.__file__)")
     out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, check=True)
     assert out.stdout.strip() == rasterize_cpu_fast.__file__
+
+
+def test_the_block_beside_the_child_runs_on_one_thread_fewer(no_kernels_yet, monkeypatch):
+    """Two usable CPUs: the child takes one, the block the other (then gets both back); without a child the
+    block keeps its threads."""
+    monkeypatch.setattr(rasterize_cpu_fast, "usable_cpus", lambda: (2, "test"))
+    _child(monkeypatch, "import time; time.sleep(0.5)")
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        with rasterize_cpu_fast.compiling_in_background() as started:
+            assert started
+            assert torch.get_num_threads() == 1
+        assert torch.get_num_threads() == 2
+        rasterize_cpu_fast.warm_up(F32)  # waits for the child
+        with rasterize_cpu_fast.compiling_in_background() as started:
+            assert not started  # float32 is ready in this process now
+            assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(threads)
+
+
+def test_no_background_compile_on_a_single_usable_cpu(no_kernels_yet, monkeypatch):
+    """On one CPU the child would only take turns with the enhancement."""
+    monkeypatch.setattr(rasterize_cpu_fast, "usable_cpus", lambda: (1, "CPU affinity"))
+    assert not rasterize_cpu_fast.compile_in_background()

@@ -37,8 +37,8 @@ rounding. Kernels are compiled on first use per dtype
 (tens of seconds) and cached on disk by numba (``cache=True``: next to this file, or under
 ``NUMBA_CACHE_DIR`` / the user cache directory when the package directory is not writable); the
 first call logs how long the compile or cache load took. The naka-gs pipeline starts the float32
-kernels' compile in a child process before it enhances the training images
-(:func:`compile_in_background`), so that on a first run the two overlap. ``numba.set_num_threads`` sets the
+kernels' compile in a child process before it enhances the training images, on one thread fewer meanwhile
+(:func:`compiling_in_background`), so that on a first run the two overlap. ``numba.set_num_threads`` sets the
 number of threads.
 """
 
@@ -64,7 +64,7 @@ from numba.extending import intrinsic
 from rich.console import Console
 from torch import Tensor
 
-from naka_gs_plugin.cpu import torch_threads_kept, untraced
+from naka_gs_plugin.cpu import fit_threads, torch_threads_kept, untraced, usable_cpus
 from naka_gs_plugin.model.project_cpu_fast import (
     _project_backward,
     _project_forward,
@@ -984,18 +984,36 @@ def kernels_on_disk() -> bool:
 
 def compile_in_background() -> bool:
     """Start compiling the float32 kernels of a training step in a child process (one thread), unless
-    they are on disk already; returns whether it started one. numba compiles in Python and holds the
-    GIL, so a thread would stall the caller's work, while a process compiles on the second core
-    during what the caller does meanwhile (the training images' enhancement, the seed points) and
-    leaves the kernels in numba's disk cache. The first render waits for it (:func:`warm_up`), then
-    loads them; if the child failed, that render compiles them itself, as without a child."""
-    if torch.float32 in _READY or torch.float32 in _BACKGROUND or kernels_on_disk():
+    they are on disk already or this process may use only one CPU; returns whether it started one.
+    numba compiles in Python and holds the GIL, so a thread would stall the caller's work, while a
+    process compiles on another core during what the caller does meanwhile (the training images'
+    enhancement, the seed points) and leaves the kernels in numba's disk cache. The first render waits
+    for it (:func:`warm_up`), then loads them; if the child failed, that render compiles them itself,
+    as without a child."""
+    if torch.float32 in _READY or torch.float32 in _BACKGROUND or usable_cpus()[0] < 2 or kernels_on_disk():
         return False
     env = dict(os.environ, OMP_NUM_THREADS="1", NUMBA_NUM_THREADS="1")
     _BACKGROUND[torch.float32] = subprocess.Popen(
         BACKGROUND_COMMAND, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
     )
     return True
+
+
+@contextmanager
+def compiling_in_background() -> Iterator[bool]:
+    """:func:`compile_in_background` for the block, which leaves the child its core: while a child it started
+    runs, the block's PyTorch (and so numba) threads are one fewer where they would otherwise fill every usable
+    CPU. A busy thread more than there are cores makes every parallel region wait at its barrier for the
+    thread that shares a core: the enhancement ran several times slower beside the child than alone
+    (docs/cpu.md). Yields whether a child started; the thread count is restored after the block."""
+    started = compile_in_background()
+    threads = fit_threads()  # as the enhancement will: the count PyTorch starts with may be the machine's cores
+    if started and threads >= usable_cpus()[0]:
+        torch.set_num_threads(max(1, threads - 1))
+    try:
+        yield started
+    finally:
+        torch.set_num_threads(threads)
 
 
 def warm_training_kernels() -> None:
