@@ -81,6 +81,7 @@ def main(config_path: Path, steps: int, keep: int | None, downscale: int, profil
 
         trainer.train_iteration, model._rasterize = timed_iteration, capturing
         trainer.train()
+        trainer.train_iteration, model._rasterize = train_iteration, rasterize
         step_s = statistics.median(b - a for a, b in zip(starts[10:], starts[11:]))
         raster_s = rasterizer_alone(model, captured)
         print(

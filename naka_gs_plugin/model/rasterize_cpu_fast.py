@@ -1008,12 +1008,10 @@ def compiling_in_background() -> Iterator[bool]:
     (docs/cpu.md). Yields whether a child started; the thread count is restored after the block."""
     started = compile_in_background()
     threads = fit_threads()  # as the enhancement will: the count PyTorch starts with may be the machine's cores
-    if started and threads >= usable_cpus()[0]:
-        torch.set_num_threads(max(1, threads - 1))
-    try:
+    with torch_threads_kept():
+        if started and threads >= usable_cpus()[0]:
+            torch.set_num_threads(max(1, threads - 1))
         yield started
-    finally:
-        torch.set_num_threads(threads)
 
 
 def warm_training_kernels() -> None:
