@@ -6,6 +6,9 @@
 - :func:`fit_threads`: PyTorch starts one thread per physical core of the *machine*, also inside a
   container limited to fewer CPUs (CPU affinity, a cgroup CPU quota); more threads than CPUs turns
   every OpenMP barrier into a wait for a descheduled thread. numba's kernels follow PyTorch's count.
+- :func:`core_lent`, :func:`reclaim_core`: one core left to a child process (the first run's kernel compile)
+  while the main process works on the others, and taken back as soon as the child exits: the main process
+  checks between its work items (the enhancement's views), since an OpenMP thread count is set per thread.
 - :func:`torch_threads_kept`: numba's OpenMP pool, started by the first parallel kernel, resets the OpenMP
   runtime it shares with PyTorch (hence PyTorch's thread count) to numba's; every caller of numba kernels
   keeps PyTorch's count with it.
@@ -22,14 +25,17 @@ import functools
 import importlib
 import math
 import os
+import subprocess
 import sys
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator, Optional, Tuple
+from typing import Dict, Iterator, Optional, Tuple
 
 import torch
 
 _FITTED: dict = {}
+_LENT: Dict[int, Tuple[subprocess.Popen, int]] = {}
+"""Children holding a core of this process's (:func:`core_lent`), by pid, with the thread count to restore."""
 
 
 def native_bf16() -> Tuple[bool, str]:
@@ -123,6 +129,32 @@ def torch_threads_kept() -> Iterator[None]:
         yield
     finally:
         if torch.get_num_threads() != threads:
+            torch.set_num_threads(threads)
+
+
+@contextmanager
+def core_lent(child: subprocess.Popen) -> Iterator[None]:
+    """PyTorch's intra-op threads (and so numba's) one fewer for the block while ``child`` runs, where they would
+    otherwise fill every usable CPU: a busy thread more than there are cores makes every parallel region wait at
+    its barrier for the thread that shares a core. The count returns at :func:`reclaim_core` once the child has
+    exited, and at the block's end in any case."""
+    with torch_threads_kept():
+        threads = fit_threads()
+        if threads >= usable_cpus()[0] and threads > 1 and child.poll() is None:
+            torch.set_num_threads(threads - 1)
+            _LENT[child.pid] = (child, threads)
+        try:
+            yield
+        finally:
+            _LENT.pop(child.pid, None)
+
+
+def reclaim_core() -> None:
+    """Take back the core of every :func:`core_lent` child that has exited (cheap: one ``poll`` each); called
+    between the work items of a block, on the thread that runs them."""
+    for pid, (child, threads) in list(_LENT.items()):
+        if child.poll() is not None:
+            del _LENT[pid]
             torch.set_num_threads(threads)
 
 

@@ -1,4 +1,7 @@
-"""naka_gs_plugin.cpu: native bfloat16 detection and the thread cap."""
+"""naka_gs_plugin.cpu: native bfloat16 detection, the thread cap and a core lent to a child."""
+
+import subprocess
+import sys
 
 import torch
 
@@ -50,6 +53,41 @@ def test_fit_threads_caps_at_the_usable_cpus_and_logs_once(monkeypatch, capsys):
         )
         torch.set_num_threads(1)  # fewer than usable: kept
         assert cpu.fit_threads() == 1 and torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(threads)
+
+
+def test_a_lent_core_comes_back_once_the_child_has_exited(monkeypatch, tmp_path):
+    """Two usable CPUs: one thread while the child runs, whatever reclaim_core is asked; two at the first
+    reclaim_core after it exits, and at the block's end while it still runs."""
+    monkeypatch.setattr(cpu, "usable_cpus", lambda: (2, "test"))
+    go = tmp_path / "go"
+    wait_for_go = f"import pathlib, time\nwhile not pathlib.Path({str(go)!r}).exists(): time.sleep(0.01)"
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        child = subprocess.Popen([sys.executable, "-c", wait_for_go])
+        with cpu.core_lent(child):
+            assert torch.get_num_threads() == 1
+            cpu.reclaim_core()
+            assert torch.get_num_threads() == 1  # still running
+            go.touch()
+            child.wait()
+            cpu.reclaim_core()
+            assert torch.get_num_threads() == 2
+        assert torch.get_num_threads() == 2
+        child = subprocess.Popen([sys.executable, "-c", wait_for_go])  # go exists: it exits at once
+        child.wait()
+        with cpu.core_lent(child):
+            assert torch.get_num_threads() == 2  # nothing to lend to a child that has exited
+        running = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+        try:
+            with cpu.core_lent(running):
+                assert torch.get_num_threads() == 1
+            assert torch.get_num_threads() == 2  # the block's end restores it, the child still running
+        finally:
+            running.kill()
+            running.wait()
     finally:
         torch.set_num_threads(threads)
 

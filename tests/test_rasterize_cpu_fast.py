@@ -512,9 +512,12 @@ def test_the_background_child_imports_this_checkout_whatever_its_working_directo
 
 
 def test_the_block_beside_the_child_runs_on_one_thread_fewer(no_kernels_yet, monkeypatch):
-    """Two usable CPUs: the child takes one, the block the other (then gets both back); without a child the
-    block keeps its threads."""
-    monkeypatch.setattr(rasterize_cpu_fast, "usable_cpus", lambda: (2, "test"))
+    """Two usable CPUs: the child takes one, the block the other, and the block gets both back at its first
+    reclaim_core once the child has exited; without a child the block keeps its threads."""
+    import naka_gs_plugin.cpu as cpu
+
+    for module in (rasterize_cpu_fast, cpu):
+        monkeypatch.setattr(module, "usable_cpus", lambda: (2, "test"))
     _child(monkeypatch, "import time; time.sleep(0.5)")
     threads = torch.get_num_threads()
     torch.set_num_threads(2)
@@ -522,6 +525,9 @@ def test_the_block_beside_the_child_runs_on_one_thread_fewer(no_kernels_yet, mon
         with rasterize_cpu_fast.compiling_in_background() as started:
             assert started
             assert torch.get_num_threads() == 1
+            rasterize_cpu_fast._BACKGROUND[F32].wait()
+            cpu.reclaim_core()
+            assert torch.get_num_threads() == 2
         assert torch.get_num_threads() == 2
         rasterize_cpu_fast.warm_up(F32)  # waits for the child
         with rasterize_cpu_fast.compiling_in_background() as started:

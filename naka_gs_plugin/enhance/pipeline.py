@@ -27,7 +27,7 @@ from nerfstudio.configs.base_config import InstantiateConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 
-from naka_gs_plugin.cpu import fit_threads
+from naka_gs_plugin.cpu import fit_threads, reclaim_core
 from naka_gs_plugin.data.cache import content_hash, default_cache_dir
 from naka_gs_plugin.data.safe_io import atomic_write
 from naka_gs_plugin.enhance.chroma import DEFAULT_BLUR
@@ -273,6 +273,7 @@ class Enhancer:
             with StageProgress() as progress:
                 task = progress.add_task(f"{description} ({chain})", total=len(todo))
                 for i in todo:
+                    reclaim_core()  # a core lent to a first run's kernel compile comes back once it is done
                     low = enhanced = to_float01(images[i])
                     for stage in self.view_stages:
                         t = time.perf_counter()
@@ -283,6 +284,7 @@ class Enhancer:
                     self._write(keys[i], out[i])
                     progress.advance(task)
         done = [o for o in out if o is not None]
+        reclaim_core()
         for stage in self.scene_stages:
             done = [(im * 65535.0).round() / 65535.0 for im in stage.apply_all(done)]
         exposure = next((stage for stage in self.scene_stages if isinstance(stage, ExposureStage)), None)

@@ -37,8 +37,8 @@ rounding. Kernels are compiled on first use per dtype
 (tens of seconds) and cached on disk by numba (``cache=True``: next to this file, or under
 ``NUMBA_CACHE_DIR`` / the user cache directory when the package directory is not writable); the
 first call logs how long the compile or cache load took. The naka-gs pipeline starts the float32
-kernels' compile in a child process before it enhances the training images, on one thread fewer meanwhile
-(:func:`compiling_in_background`), so that on a first run the two overlap. ``numba.set_num_threads`` sets the
+kernels' compile in a child process before it enhances the training images, on one thread fewer until the
+child exits (:func:`compiling_in_background`), so that on a first run the two overlap. ``numba.set_num_threads`` sets the
 number of threads.
 """
 
@@ -64,7 +64,7 @@ from numba.extending import intrinsic
 from rich.console import Console
 from torch import Tensor
 
-from naka_gs_plugin.cpu import fit_threads, torch_threads_kept, untraced, usable_cpus
+from naka_gs_plugin.cpu import core_lent, torch_threads_kept, untraced, usable_cpus
 from naka_gs_plugin.model.project_cpu_fast import (
     _project_backward,
     _project_forward,
@@ -1001,17 +1001,15 @@ def compile_in_background() -> bool:
 
 @contextmanager
 def compiling_in_background() -> Iterator[bool]:
-    """:func:`compile_in_background` for the block, which leaves the child its core: while a child it started
-    runs, the block's PyTorch (and so numba) threads are one fewer where they would otherwise fill every usable
-    CPU. A busy thread more than there are cores makes every parallel region wait at its barrier for the
-    thread that shares a core: the enhancement ran several times slower beside the child than alone
-    (docs/cpu.md). Yields whether a child started; the thread count is restored after the block."""
-    started = compile_in_background()
-    threads = fit_threads()  # as the enhancement will: the count PyTorch starts with may be the machine's cores
-    with torch_threads_kept():
-        if started and threads >= usable_cpus()[0]:
-            torch.set_num_threads(max(1, threads - 1))
-        yield started
+    """:func:`compile_in_background` for the block, which leaves the child its core until it exits
+    (:func:`~naka_gs_plugin.cpu.core_lent`: the block takes it back at its
+    :func:`~naka_gs_plugin.cpu.reclaim_core` calls). Yields whether a child started; the thread count is
+    restored after the block."""
+    if not compile_in_background():
+        yield False
+        return
+    with core_lent(_BACKGROUND[torch.float32]):
+        yield True
 
 
 def warm_training_kernels() -> None:
