@@ -1,6 +1,7 @@
 """Lean correction inference: bfloat16 fused GroupNorm/GELU kernels, the in-place forward, heap reuse."""
 
 import math
+import os
 
 import numba
 import numpy as np
@@ -246,7 +247,24 @@ def test_heap_reuse_only_while_the_largest_activation_is_small(monkeypatch):
 
 
 def test_fused_kernels_keep_pytorch_thread_count():
-    """numba's OpenMP pool shares the runtime with PyTorch; the kernels must not change its count."""
+    """numba's OpenMP pool shares the runtime with PyTorch; the kernels must not change its count, also on
+    the call that starts the pool (a fresh process: the pool of this one may be running already)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import torch\n"
+        "from naka_gs_plugin.enhance.lean_ops import group_norm_gelu\n"
+        "torch.set_num_threads(1)\n"
+        "x = torch.randn(1, 8, 6, 5).to(memory_format=torch.channels_last)\n"
+        "group_norm_gelu(x, torch.nn.GroupNorm(4, 8))\n"
+        "print(torch.get_num_threads())\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS")}
+    out = subprocess.run(
+        [sys.executable, "-c", code], env={**env, "NUMBA_NUM_THREADS": "2"}, capture_output=True, text=True, check=True
+    )
+    assert out.stdout.strip().splitlines()[-1] == "1"
     threads = torch.get_num_threads()
     try:
         torch.set_num_threads(1)

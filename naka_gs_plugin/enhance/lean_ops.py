@@ -270,8 +270,9 @@ def _threads_as_torch(fn):
     pool, started on first use, resets the shared OpenMP runtime's (hence PyTorch's) count."""
 
     def wrapped(*args, **kwargs):
-        numba.set_num_threads(min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS))
-        with torch_threads_kept():
+        threads = min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)
+        with torch_threads_kept():  # around set_num_threads too: the first call is what starts the pool
+            numba.set_num_threads(threads)
             return fn(*args, **kwargs)
 
     return functools.wraps(fn)(wrapped)
