@@ -14,7 +14,7 @@ import torch
 from nerfstudio.data.scene_box import SceneBox
 
 from naka_gs_plugin.model import rasterize_cpu_fast
-from naka_gs_plugin.model.projection import project_gaussians
+from naka_gs_plugin.model.projection import pixel_bounds, project_gaussians
 from naka_gs_plugin.model.rasterize import ALPHA_MIN, TILE_SIZE, rasterization
 from naka_gs_plugin.model.rasterize_cpu_fast import rasterize_to_pixels_cpu_fast
 from naka_gs_plugin.model.rasterize_dense import rasterize_to_pixels_dense
@@ -269,6 +269,50 @@ def test_tile_lists_are_in_depth_order_per_tile(monkeypatch):
         for j in items
     ]
     assert (slot_y[:, 1] < np.array(box_rows)).any()  # some slots' rows narrower than their box's in the tile
+
+
+@pytest.mark.parametrize("hard", [False, True])
+def test_pixel_boxes_lose_only_rows_and_columns_without_span_pixels(monkeypatch, hard):
+    """The records' pixel boxes are the radius's boxes (pixel_bounds) cut to the lenient ellipse's extent:
+    the row spans from them hold every pixel those of the radius's boxes hold, pixel for pixel, from fewer
+    box rows (the hard scene: collapsed, huge, saturated, faint, needle-like and near-plane Gaussians)."""
+    scene = make_scene(300, 70, 50, hard=hard, seed=3)
+    rasterize_cpu_fast.warm_up(F32)
+    calls = {}
+    make_records = rasterize_cpu_fast._make_records
+
+    def recorded(*args):
+        calls["args"], calls["out"] = args, make_records(*args)
+        return calls["out"]
+
+    monkeypatch.setattr(rasterize_cpu_fast, "_make_records", recorded)
+    rasterize_cpu_fast.rasterization(**scene)
+    entries, means2d, _, _, _, radii_f, _, width, height = calls["args"]
+    records, boxes = calls["out"]
+    radius_boxes = pixel_bounds(
+        torch.from_numpy(means2d[entries]), torch.from_numpy(radii_f[entries]).long(), width, height
+    ).numpy()
+    finite = np.isfinite(records[:, :5]).all(1) & np.isfinite(radii_f[entries])
+    radius_boxes[~finite] = (0, -1, 0, -1)
+    ys = np.arange(height, dtype=np.float32) + 0.5
+
+    def span_pixels(box_set):
+        row_start, spans = rasterize_cpu_fast._row_spans(records, box_set, ys)
+        return {
+            (j, py, px)
+            for j in range(len(box_set))
+            for py in range(box_set[j, 2], box_set[j, 3] + 1)
+            for px in range(
+                spans[row_start[j] + py - box_set[j, 2], 0], spans[row_start[j] + py - box_set[j, 2], 1] + 1
+            )
+        }
+
+    rows = lambda b: int(np.maximum(b[:, 3] - b[:, 2] + 1, 0).sum())  # noqa: E731
+    inside = (boxes[:, 0] >= radius_boxes[:, 0]) & (boxes[:, 1] <= radius_boxes[:, 1])
+    inside &= (boxes[:, 2] >= radius_boxes[:, 2]) & (boxes[:, 3] <= radius_boxes[:, 3])
+    assert (inside | (boxes[:, 1] < boxes[:, 0])).all()
+    assert span_pixels(boxes) == span_pixels(radius_boxes) and len(span_pixels(boxes)) > 1000
+    assert rows(boxes) < 0.8 * rows(radius_boxes)
 
 
 def test_results_do_not_depend_on_the_thread_count():

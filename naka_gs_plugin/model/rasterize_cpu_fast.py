@@ -151,6 +151,11 @@ def _make_records(entries, means2d, conics, opacities, colors, radii_f, consts, 
     (:func:`~naka_gs_plugin.model.projection.pixel_bounds`, evaluated in the inputs' dtype as there:
     ``consts`` = (0.5, ALPHA_MAX, ALPHA_MIN, 0) in that dtype). Inputs are flat [C*N, ...].
 
+    The box is then narrowed to the rows and columns its lenient ellipse can reach (:func:`_ellipse_box`),
+    as the torch path's enumeration narrows its rows: on a trained scene about half the rows of the radius's
+    box have an empty row span, and every list stage walks a box row by row and tile by tile. Only rows and
+    columns without a span pixel go, so the lists and every render are the same bits.
+
     An entry with a non-finite centre, radius or conic, or whose box misses the image, gets the
     empty box (0, -1, 0, -1): it covers no tile, so it is culled (a reversed box would index out of
     bounds: absurd cameras and diverged Gaussians must not crash the process)."""
@@ -160,22 +165,49 @@ def _make_records(entries, means2d, conics, opacities, colors, radii_f, consts, 
     for j in prange(entries.shape[0]):
         e = entries[j]
         mx, my, r = means2d[e, 0], means2d[e, 1], radii_f[e]
-        boxes[j, 0], boxes[j, 1], boxes[j, 2], boxes[j, 3] = 0, -1, 0, -1
-        finite = np.isfinite(mx) and np.isfinite(my) and np.isfinite(r)
-        if finite and np.isfinite(conics[e, 0]) and np.isfinite(conics[e, 1]) and np.isfinite(conics[e, 2]):
-            x0 = np.int64(max(np.ceil(mx - r - consts[0]), consts[3]))
-            x1 = np.int64(min(np.floor(mx + r - consts[0]), width - 1))
-            y0 = np.int64(max(np.ceil(my - r - consts[0]), consts[3]))
-            y1 = np.int64(min(np.floor(my + r - consts[0]), height - 1))
-            if x0 <= x1 and y0 <= y1:
-                boxes[j, 0], boxes[j, 1], boxes[j, 2], boxes[j, 3] = x0, x1, y0, y1
         records[j, 0], records[j, 1] = mx, my
         records[j, 2], records[j, 3], records[j, 4] = conics[e, 0], conics[e, 1], conics[e, 2]
         records[j, 5] = opacities[e]
         records[j, 6], records[j, 7] = _ellipse_level(conics[e, 0], conics[e, 1], conics[e, 2], opacities[e])
         for d in range(n_dim):
             records[j, REC_COLORS + d] = colors[e, d]
+        boxes[j, 0], boxes[j, 1], boxes[j, 2], boxes[j, 3] = 0, -1, 0, -1
+        finite = np.isfinite(mx) and np.isfinite(my) and np.isfinite(r)
+        if finite and np.isfinite(conics[e, 0]) and np.isfinite(conics[e, 1]) and np.isfinite(conics[e, 2]):
+            x0, x1, y0, y1 = _ellipse_box(
+                records[j],
+                max(np.ceil(mx - r - consts[0]), consts[3]),
+                min(np.floor(mx + r - consts[0]), width - 1),
+                max(np.ceil(my - r - consts[0]), consts[3]),
+                min(np.floor(my + r - consts[0]), height - 1),
+            )
+            if x0 <= x1 and y0 <= y1:
+                boxes[j, 0], boxes[j, 1], boxes[j, 2], boxes[j, 3] = x0, x1, y0, y1
     return records, boxes
+
+
+_BOX_MARGIN = 1e-6
+"""Relative margin of :func:`_ellipse_box`'s half-extents (plus as much in pixels): far above the float64
+rounding of :func:`_row_span` and the float32 rounding of ``mean - pixel centre`` it is fed."""
+
+
+@njit(cache=True, inline="always")
+def _ellipse_box(rec, x0, x1, y0, y1):
+    """Integer pixel box ``(x0, x1, y0, y1)`` of the radius's box (pixel_bounds, given as floats) cut to the
+    columns and rows whose centres lie within the lenient ellipse's half-extents ``sqrt(2 level c / det)``
+    and ``sqrt(2 level a / det)`` of the record's centre, widened by ``_BOX_MARGIN``: every pixel with a
+    row span (:func:`_row_span`, from the same stored ``level`` and ``det``) stays inside. Degenerate
+    conics keep the radius's box, as ``_row_span`` falls back to it."""
+    a, c = np.float64(rec[2]), np.float64(rec[4])
+    level, det = np.float64(rec[6]), np.float64(rec[7])
+    if rec[2] > 0 and det > 0 and level < np.inf:
+        both = 2.0 * max(level, 0.0) / det
+        half_w = np.sqrt(both * c) * (1.0 + _BOX_MARGIN) + _BOX_MARGIN
+        half_h = np.sqrt(both * a) * (1.0 + _BOX_MARGIN) + _BOX_MARGIN
+        mx, my = np.float64(rec[0]), np.float64(rec[1])
+        x0, x1 = max(x0, np.ceil(mx - half_w - 0.5)), min(x1, np.floor(mx + half_w - 0.5))
+        y0, y1 = max(y0, np.ceil(my - half_h - 0.5)), min(y1, np.floor(my + half_h - 0.5))
+    return np.int64(x0), np.int64(x1), np.int64(y0), np.int64(y1)
 
 
 @njit(parallel=True, cache=True)
@@ -295,14 +327,18 @@ def _bin_tiles(boxes, entries, n_gauss, n_cams, tiles_x, tiles_y, box_start, pix
 
 
 @njit(parallel=True, cache=True)
-def _gather_rows(records, tile_items):
+def _gather_rows(records, tile_items, row_start, boxes):
     """``records[tile_items]``: one record per list slot, so that each tile reads its list from
-    contiguous memory (scattered reads of depth-ordered records made the kernels ~25 % slower)."""
+    contiguous memory (scattered reads of depth-ordered records made the kernels ~25 % slower); and per
+    slot the position of its record's image row 0 in ``spans`` (``row_start - box row 0``)."""
     out = np.empty((tile_items.shape[0], records.shape[1]), dtype=records.dtype)
+    slot_rows = np.empty(tile_items.shape[0], dtype=np.int64)
     for k in prange(tile_items.shape[0]):
+        j = tile_items[k]
         for col in range(records.shape[1]):
-            out[k, col] = records[tile_items[k], col]
-    return out
+            out[k, col] = records[j, col]
+        slot_rows[k] = row_start[j] - boxes[j, 2]
+    return out, slot_rows
 
 
 @njit(cache=True, inline="always")
@@ -1141,13 +1177,14 @@ class _TileComposite(torch.autograd.Function):
             tile_start, tile_items, rec_start, rec_slots, vis_start, slot_y = _bin_tiles(
                 boxes, entries, n, n_cams, tiles_x, tiles_y, *_tile_pixels(boxes, row_start, spans)
             )
+            slot_records, slot_rows = _gather_rows(records, tile_items, row_start, boxes)
             kernel_args = (
                 _balanced_tile_order(tile_start),
                 tile_start,
                 vis_start,
-                row_start[tile_items] - boxes[tile_items, 2],  # per slot: its record's row 0 in spans
+                slot_rows,
                 slot_y,
-                _gather_rows(records, tile_items),
+                slot_records,
                 xs,
                 ys,
                 consts,
