@@ -115,6 +115,26 @@ def test_sh_colors_match_reference_float64(degree, per_camera):
         assert (m_f[40:60] == 0).all()
 
 
+@pytest.mark.parametrize("degree", [1, 3])
+def test_sh_colors_from_splatfacto_s_two_parameters_are_the_concatenation_s_bits(degree):
+    """``(features_dc, features_rest)`` as they are give the colours and gradients of their [N, K, 3]
+    concatenation bit for bit (float32, as training), each gradient in its own parameter's layout."""
+    gen = torch.Generator().manual_seed(degree)
+    scene = make_scene(300, 30, 20, n_cams=1, sh_degree=3, seed=degree)
+    dc, rest = torch.randn(300, 3, generator=gen), torch.randn(300, 15, 3, generator=gen)
+    weights = torch.randn(1, 300, 3, generator=gen)
+    results = []
+    for pair in (False, True):
+        m, d, r = (x.clone().requires_grad_() for x in (scene["means"], dc, rest))
+        coeffs = (d, r) if pair else torch.cat((d[:, None, :], r), dim=1)
+        out = fast.sh_colors(m, coeffs, scene["viewmats"], degree)
+        (out * weights).sum().backward()
+        results.append((out, m.grad, d.grad, r.grad))
+    for a, b in zip(*results):
+        assert torch.equal(a, b)
+    assert results[1][3].is_contiguous() and results[1][3][:, (degree + 1) ** 2 - 1 :].count_nonzero() == 0
+
+
 def test_camera_gradients_defer_to_the_reference():
     scene = make_scene(50, 30, 20, n_cams=1, dtype=F64, seed=2)
     viewmats = scene["viewmats"].clone().requires_grad_()

@@ -31,10 +31,11 @@ def rasterizer_alone(model, kwargs: dict, repeats: int = 30) -> float:
     """Median seconds of the model's rasterizer call, forward and backward, on copies of one step's inputs
     (leaves, so autograd runs only the rasterizer's backward; seeded random output gradients)."""
     gen = torch.Generator().manual_seed(0)
-    inputs = {k: v.detach().clone().requires_grad_(True) for k, v in kwargs.items() if isinstance(v, torch.Tensor)}
-    inputs["viewmats"].requires_grad_(False)
-    inputs["Ks"].requires_grad_(False)
-    rest = {k: v for k, v in kwargs.items() if not isinstance(v, torch.Tensor)}
+    leaf = lambda v: v.detach().clone().requires_grad_(True)  # noqa: E731
+    inputs = {k: v if k in ("viewmats", "Ks") else leaf(v) for k, v in kwargs.items() if isinstance(v, torch.Tensor)}
+    if isinstance(kwargs["colors"], tuple):  # splatfacto's (features_dc, features_rest), as the model passes them
+        inputs["colors"] = tuple(leaf(v) for v in kwargs["colors"])
+    rest = {k: v for k, v in kwargs.items() if k not in inputs}
     times = []
     for _ in range(repeats):
         start = time.perf_counter()
@@ -44,7 +45,8 @@ def rasterizer_alone(model, kwargs: dict, repeats: int = 30) -> float:
         torch.autograd.backward((render, alpha), grads)
         times.append(time.perf_counter() - start)
         for v in inputs.values():
-            v.grad = None
+            for t in v if isinstance(v, tuple) else (v,):
+                t.grad = None
     return statistics.median(times[1:])
 
 

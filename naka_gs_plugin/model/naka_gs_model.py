@@ -247,7 +247,11 @@ class NakaGSModel(SplatfactoModel):
                 ("quats", self.quats),
             )
         }
-        colors = torch.cat((params["features_dc"][:, None, :], params["features_rest"]), dim=1)
+        if self.config.sh_degree > 0 and self._backend(self.means.device) == "cpu-fast":
+            # Its SH kernels read the two parameters as they are: no [N, 16, 3] copy and no copy of its gradient.
+            colors = (params["features_dc"], params["features_rest"])
+        else:
+            colors = torch.cat((params["features_dc"][:, None, :], params["features_rest"]), dim=1)
 
         camera_scale_fac = self._get_downscale_factor()
         camera.rescale_output_resolution(1 / camera_scale_fac)

@@ -23,6 +23,7 @@ torch reference.
 from __future__ import annotations
 
 import math
+from typing import Tuple, Union
 
 import numpy as np
 import torch
@@ -429,20 +430,24 @@ def _sh_dir(means, centres, n, c, degree):
 
 
 @njit(cache=True, inline="always")
-def _sh_sums(bases, coef, n_bases):
-    """The three channels' ``sum_k bases[k] * coef[k, ch]`` (float64), in one pass over the bases,
-    each channel summed in the order of ``k``."""
+def _sh_sums(bases, dc, rest, n_bases):
+    """The three channels' ``sum_k bases[k] * coef[k, ch]`` (float64) of the coefficients ``dc`` [3] (k = 0)
+    and ``rest`` [K - 1, 3] (k >= 1), in one pass over the bases, each channel summed in the order of ``k``."""
     s0 = s1 = s2 = 0.0
-    for k in range(n_bases):
-        s0 += bases[k] * coef[k, 0]
-        s1 += bases[k] * coef[k, 1]
-        s2 += bases[k] * coef[k, 2]
+    s0 += bases[0] * dc[0]
+    s1 += bases[0] * dc[1]
+    s2 += bases[0] * dc[2]
+    for k in range(1, n_bases):
+        s0 += bases[k] * rest[k - 1, 0]
+        s1 += bases[k] * rest[k - 1, 1]
+        s2 += bases[k] * rest[k - 1, 2]
     return s0, s1, s2
 
 
 @njit(parallel=True, cache=True)
-def _sh_forward(means, coeffs, centres, degree, out):
-    """``out`` [C,N,3] = max(SH(means - centre_c) + 0.5, 0); ``coeffs`` [1 or C, N, K, 3]."""
+def _sh_forward(means, dc, rest, centres, degree, out):
+    """``out`` [C,N,3] = max(SH(means - centre_c) + 0.5, 0); coefficients ``dc`` [1 or C, N, 3] (degree 0)
+    and ``rest`` [1 or C, N, K - 1, 3] (the higher degrees: splatfacto's two parameters, not concatenated)."""
     n_gauss, n_cams = means.shape[0], centres.shape[0]
     n_bases = (degree + 1) ** 2
     for chunk in prange((n_gauss + _CHUNK - 1) // _CHUNK):
@@ -451,24 +456,26 @@ def _sh_forward(means, coeffs, centres, degree, out):
             for c in range(n_cams):
                 dirn, _ = _sh_dir(means, centres, n, c, degree)
                 _sh_bases(degree, dirn[0], dirn[1], dirn[2], bases)
-                s0, s1, s2 = _sh_sums(bases, coeffs[c if coeffs.shape[0] > 1 else 0, n], n_bases)
+                m = c if dc.shape[0] > 1 else 0
+                s0, s1, s2 = _sh_sums(bases, dc[m, n], rest[m, n], n_bases)
                 out[c, n, 0], out[c, n, 1], out[c, n, 2] = max(s0 + 0.5, 0.0), max(s1 + 0.5, 0.0), max(s2 + 0.5, 0.0)
 
 
 @njit(parallel=True, cache=True)
-def _sh_backward(means, coeffs, centres, degree, g_out, g_means, g_coeffs):
-    """Write the gradients of :func:`_sh_forward` w.r.t. means [N,3] and coeffs [1 or C, N, K, 3]
-    (in their dtype; coefficients beyond the degree get zeros). A camera whose ``g_out`` row is zero
+def _sh_backward(means, dc, rest, centres, degree, g_out, g_means, g_dc, g_rest):
+    """Write the gradients of :func:`_sh_forward` w.r.t. means [N,3], ``dc`` and ``rest`` (in their dtype;
+    coefficients beyond the degree get zeros). A camera whose ``g_out`` row is zero
     (a Gaussian it does not composite) is skipped: all its terms are +0, so the sums are the same
     bits (only non-finite coefficients, whose product with 0 torch would turn into NaN, differ)."""
     n_gauss, n_cams = means.shape[0], centres.shape[0]
     n_bases = (degree + 1) ** 2
-    shared = coeffs.shape[0] == 1
+    shared = dc.shape[0] == 1
     for chunk in prange((n_gauss + _CHUNK - 1) // _CHUNK):
         bases = np.empty(16)
         g_bases = np.empty(16)
         for n in range(chunk * _CHUNK, min((chunk + 1) * _CHUNK, n_gauss)):
-            g_coeffs[:, n] = 0.0
+            g_dc[:, n] = 0.0
+            g_rest[:, n] = 0.0
             gm0 = gm1 = gm2 = 0.0
             for c in range(n_cams):
                 g0, g1, g2 = np.float64(g_out[c, n, 0]), np.float64(g_out[c, n, 1]), np.float64(g_out[c, n, 2])
@@ -476,23 +483,24 @@ def _sh_backward(means, coeffs, centres, degree, g_out, g_means, g_coeffs):
                     continue
                 dirn, norm = _sh_dir(means, centres, n, c, degree)
                 _sh_bases(degree, dirn[0], dirn[1], dirn[2], bases)
-                coef = coeffs[c if not shared else 0, n]
-                grad = g_coeffs[c if not shared else 0, n]
-                s0, s1, s2 = _sh_sums(bases, coef, n_bases)
+                m = c if not shared else 0
+                s0, s1, s2 = _sh_sums(bases, dc[m, n], rest[m, n], n_bases)
                 # clamp_min passes the gradient where SH + 0.5 >= 0 (and NaN, as torch does)
                 t0, t1, t2 = not s0 + 0.5 < 0.0, not s1 + 0.5 < 0.0, not s2 + 0.5 < 0.0
                 for k in range(n_bases):
                     b = bases[k]
+                    coef = dc[m, n] if k == 0 else rest[m, n, k - 1]
+                    grad = g_dc[m, n] if k == 0 else g_rest[m, n, k - 1]
                     gb = 0.0
                     if t0:
-                        grad[k, 0] += b * g0
-                        gb += coef[k, 0] * g0
+                        grad[0] += b * g0
+                        gb += coef[0] * g0
                     if t1:
-                        grad[k, 1] += b * g1
-                        gb += coef[k, 1] * g1
+                        grad[1] += b * g1
+                        gb += coef[1] * g1
                     if t2:
-                        grad[k, 2] += b * g2
-                        gb += coef[k, 2] * g2
+                        grad[2] += b * g2
+                        gb += coef[2] * g2
                     g_bases[k] = gb
                 if degree == 0:
                     continue
@@ -552,25 +560,29 @@ class _ProjectFn(torch.autograd.Function):
 
 
 class _SHFn(torch.autograd.Function):
-    """Numba SH colours ``max(SH + 0.5, 0)`` per camera from coefficients [1 or C, N, K, 3]."""
+    """Numba SH colours ``max(SH + 0.5, 0)`` per camera from coefficients ``dc`` [1 or C, N, 3] and
+    ``rest`` [1 or C, N, K - 1, 3]."""
 
     @staticmethod
     @untraced()
-    def forward(ctx, means, coeffs, centres, degree):
-        out = torch.empty(centres.shape[0], means.shape[0], 3, dtype=coeffs.dtype)
-        _sh_forward(_np(means), _np(coeffs), _np(centres), degree, out.numpy())
-        ctx.save_for_backward(means, coeffs, centres)
+    def forward(ctx, means, dc, rest, centres, degree):
+        out = torch.empty(centres.shape[0], means.shape[0], 3, dtype=dc.dtype)
+        _sh_forward(_np(means), _np(dc), _np(rest), _np(centres), degree, out.numpy())
+        ctx.save_for_backward(means, dc, rest, centres)
         ctx.degree = degree
         return out
 
     @staticmethod
     @untraced()
     def backward(ctx, g_out):
-        means, coeffs, centres = ctx.saved_tensors
+        means, dc, rest, centres = ctx.saved_tensors
         g_means = torch.empty(means.shape, dtype=means.dtype)
-        g_coeffs = torch.empty(coeffs.shape, dtype=coeffs.dtype)
-        _sh_backward(_np(means), _np(coeffs), _np(centres), ctx.degree, _np(g_out), g_means.numpy(), g_coeffs.numpy())
-        return g_means if ctx.degree > 0 else None, g_coeffs, None, None
+        g_dc, g_rest = torch.empty(dc.shape, dtype=dc.dtype), torch.empty(rest.shape, dtype=rest.dtype)
+        _sh_backward(
+            _np(means), _np(dc), _np(rest), _np(centres), ctx.degree, _np(g_out), g_means.numpy(), g_dc.numpy(),
+            g_rest.numpy(),
+        )  # fmt: skip
+        return g_means if ctx.degree > 0 else None, g_dc, g_rest, None, None
 
 
 def project_gaussians(
@@ -600,20 +612,32 @@ def project_gaussians(
 
 def sh_colors(
     means: Float[Tensor, "N 3"],
-    coeffs: Float[Tensor, "C N K 3"],
+    coeffs: Union[Float[Tensor, "C N K 3"], Tuple[Float[Tensor, "N 3"], Float[Tensor, "N K1 3"]]],
     viewmats: Float[Tensor, "C 4 4"],
     degree: int,
 ) -> Float[Tensor, "C N 3"]:
     """:func:`naka_gs_plugin.model.projection.sh_colors` with compiled kernels; ``coeffs`` may also
-    be [N, K, 3] (shared by the cameras). The torch reference when ``viewmats`` requires grad."""
+    be [N, K, 3] (shared by the cameras), or splatfacto's two parameters ``(features_dc [N, 3],
+    features_rest [N, K - 1, 3])`` as they are: their [N, K, 3] concatenation, a copy of every coefficient
+    forward and of its gradient backward, is then never made. The torch reference when ``viewmats``
+    requires grad."""
     if not 0 <= degree <= MAX_SH_DEGREE:
         raise ValueError(f"sh degree must be in 0..{MAX_SH_DEGREE}, got {degree}")
     n_bases = (degree + 1) ** 2
-    if coeffs.shape[-2] < n_bases:
-        raise ValueError(f"sh degree {degree} needs {n_bases} coefficients, got {coeffs.shape[-2]}")
+    if isinstance(coeffs, tuple):
+        dc, rest = coeffs
+        n_given = rest.shape[-2] + 1
+    else:
+        dc, rest = coeffs[..., 0, :], coeffs[..., 1:, :]
+        n_given = coeffs.shape[-2]
+    if n_given < n_bases:
+        raise ValueError(f"sh degree {degree} needs {n_bases} coefficients, got {n_given}")
     if viewmats.requires_grad:
+        coeffs = torch.cat((dc[..., None, :], rest), dim=-2)
         if coeffs.dim() == 3:
             coeffs = coeffs.expand(viewmats.shape[0], *coeffs.shape)
         return reference.sh_colors(means, coeffs, viewmats, degree)
     centres = torch.linalg.inv(viewmats.detach().double())[:, :3, 3]
-    return _SHFn.apply(means, coeffs if coeffs.dim() == 4 else coeffs[None], centres, degree)
+    return _SHFn.apply(
+        means, dc if dc.dim() == 3 else dc[None], rest if rest.dim() == 4 else rest[None], centres, degree
+    )

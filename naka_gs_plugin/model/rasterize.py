@@ -395,7 +395,10 @@ def rasterize_to_pixels_sparse(
 
 
 def _shade_torch(means: Tensor, colors: Tensor, viewmats: Tensor, degree: int) -> Tensor:
-    """:func:`sh_colors` on [N, K, 3] (shared by the cameras) or [C, N, K, 3] coefficients."""
+    """:func:`sh_colors` on [N, K, 3] (shared by the cameras) or [C, N, K, 3] coefficients, or the pair
+    ``(features_dc [N, 3], features_rest [N, K - 1, 3])``."""
+    if isinstance(colors, tuple):
+        colors = torch.cat((colors[0][:, None, :], colors[1]), dim=1)
     coeffs = colors.expand(viewmats.shape[0], *colors.shape) if colors.dim() == 3 else colors
     return sh_colors(means, coeffs, viewmats, degree)
 
@@ -423,7 +426,8 @@ def rasterization_with_compositor(
 ) -> Tuple[Float[Tensor, "C H W X"], Float[Tensor, "C H W 1"], Dict]:
     """gsplat 1.4.0 ``rasterization`` (unpacked, pinhole) with pluggable steps: ``compositor``, and
     ``project`` / ``shade`` (``project_gaussians``'s and ``shade(means, colors, viewmats, sh_degree)``
-    interfaces, ``colors`` as given: [N, K, 3] or [C, N, K, 3]; default the torch reference)."""
+    interfaces, ``colors`` as given: [N, K, 3] or [C, N, K, 3], or with ``sh_degree`` splatfacto's pair
+    ``(features_dc [N, 3], features_rest [N, K - 1, 3])``; default the torch reference)."""
     shade = shade or _shade_torch
     n = means.shape[0]
     n_cams = viewmats.shape[0]
@@ -458,7 +462,12 @@ def rasterization_with_compositor(
             raise ValueError(f"colors must be [N, D] or [C, N, D], got {tuple(colors.shape)}")
         feats = colors.expand(n_cams, n, colors.shape[-1]) if colors.dim() == 2 else colors
     else:
-        if not (colors.dim() == 3 and colors.shape[0] == n) and colors.shape[:2] != (n_cams, n):
+        if isinstance(colors, tuple):  # splatfacto's (features_dc, features_rest), for a shade that takes them
+            if len(colors) != 2 or colors[0].shape != (n, 3) or colors[1].dim() != 3 or colors[1].shape[0] != n:
+                raise ValueError(
+                    f"SH colors as a pair must be ([N, 3], [N, K-1, 3]), got {[tuple(c.shape) for c in colors]}"
+                )
+        elif not (colors.dim() == 3 and colors.shape[0] == n) and colors.shape[:2] != (n_cams, n):
             raise ValueError(f"SH colors must be [N, K, 3] or [C, N, K, 3], got {tuple(colors.shape)}")
         feats = shade(means, colors, viewmats, sh_degree)
 

@@ -52,7 +52,7 @@ import time
 from contextlib import contextmanager
 from functools import partial
 from pathlib import Path
-from typing import Dict, Iterator, Literal, Optional, Set, Tuple
+from typing import Dict, Iterator, Literal, Optional, Set, Tuple, Union
 
 import numba
 import numpy as np
@@ -1291,7 +1291,7 @@ def rasterization(
     quats: Float[Tensor, "N 4"],
     scales: Float[Tensor, "N 3"],
     opacities: Float[Tensor, " N"],
-    colors: Tensor,
+    colors: Union[Tensor, Tuple[Tensor, Tensor]],
     viewmats: Float[Tensor, "C 4 4"],
     Ks: Float[Tensor, "C 3 3"],
     width: int,
@@ -1306,7 +1306,9 @@ def rasterization(
     eps2d: float = 0.3,
 ) -> Tuple[Float[Tensor, "C H W X"], Float[Tensor, "C H W 1"], Dict]:
     """:func:`naka_gs_plugin.model.rasterize.rasterization` (gsplat 1.4.0 interface, same outputs
-    and ``meta``) with compiled projection, SH colours and compositing; CPU tensors only."""
+    and ``meta``) with compiled projection, SH colours and compositing; CPU tensors only. With ``sh_degree``,
+    ``colors`` may also be splatfacto's ``(features_dc [N, 3], features_rest [N, K - 1, 3])``, which the SH
+    kernels read as they are (:func:`~naka_gs_plugin.model.project_cpu_fast.sh_colors`)."""
     if means.device.type != "cpu":
         raise ValueError(f"the cpu-fast rasterizer needs CPU tensors, got {means.device} -- use gsplat on CUDA")
     if means.dtype not in (torch.float32, torch.float64):
