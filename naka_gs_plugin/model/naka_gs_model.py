@@ -210,6 +210,9 @@ class NakaGSModel(SplatfactoModel):
         if backend == "gsplat":
             from gsplat.rendering import rasterization as gsplat_rasterization
 
+            if isinstance(kwargs["colors"], tuple):  # ours read (features_dc, features_rest) without the copy
+                dc, rest = kwargs["colors"]
+                kwargs["colors"] = torch.cat((dc[:, None, :], rest), dim=1)
             return gsplat_rasterization(packed=False, sparse_grad=False, **kwargs)
         if backend == "cpu-fast":
             from naka_gs_plugin.model.rasterize_cpu_fast import rasterization as cpu_fast_rasterization
@@ -247,11 +250,10 @@ class NakaGSModel(SplatfactoModel):
                 ("quats", self.quats),
             )
         }
-        if self.config.sh_degree > 0 and self._backend(self.means.device) == "cpu-fast":
-            # Its SH kernels read the two parameters as they are: no [N, 16, 3] copy and no copy of its gradient.
-            colors = (params["features_dc"], params["features_rest"])
-        else:
-            colors = torch.cat((params["features_dc"][:, None, :], params["features_rest"]), dim=1)
+        # The two SH parameters as they are; only gsplat needs their [N, 16, 3] concatenation (_rasterize).
+        colors = (params["features_dc"], params["features_rest"])
+        if self.config.sh_degree == 0:
+            colors = torch.cat((colors[0][:, None, :], colors[1]), dim=1)
 
         camera_scale_fac = self._get_downscale_factor()
         camera.rescale_output_resolution(1 / camera_scale_fac)
