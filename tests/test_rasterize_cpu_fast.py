@@ -271,6 +271,23 @@ def test_tile_lists_are_in_depth_order_per_tile(monkeypatch):
     assert (slot_y[:, 1] < np.array(box_rows)).any()  # some slots' rows narrower than their box's in the tile
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_depth_sort_is_torchs_stable_argsort(dtype):
+    """The radix sort on the keys' varying bits orders as ``torch.argsort(stable=True)``: ties in input
+    order, -0.0 equal to 0.0, negatives before positives, keys spanning a few bits or all of them,
+    a single key and keys that are all equal."""
+    rng = np.random.default_rng(3)
+    depths = rng.uniform(0.5, 6.0, 5000)
+    depths[::7] = depths[3]
+    signed = rng.normal(size=5000) * np.exp(rng.uniform(-30, 30, 5000))
+    signed[::5], signed[1::5] = -0.0, 0.0
+    close = 2.0 + np.arange(300) % 5 * np.spacing(np.float32(2.0))  # only the lowest mantissa bits differ
+    cases = [depths, signed, close, rng.uniform(1, 2, 1), np.full(50, 1.5)]
+    for keys in (k.astype(dtype) for k in cases):
+        expected = torch.argsort(torch.from_numpy(keys), stable=True).numpy()
+        assert np.array_equal(rasterize_cpu_fast._stable_argsort(keys), expected)
+
+
 @pytest.mark.parametrize("hard", [False, True])
 def test_pixel_boxes_lose_only_rows_and_columns_without_span_pixels(monkeypatch, hard):
     """The records' pixel boxes are the radius's boxes (pixel_bounds) cut to the lenient ellipse's extent:

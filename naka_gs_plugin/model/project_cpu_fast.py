@@ -485,23 +485,23 @@ def _sh_backward(means, dc, rest, centres, degree, g_out, g_means, g_dc, g_rest)
                 _sh_bases(degree, dirn[0], dirn[1], dirn[2], bases)
                 m = c if not shared else 0
                 s0, s1, s2 = _sh_sums(bases, dc[m, n], rest[m, n], n_bases)
-                # clamp_min passes the gradient where SH + 0.5 >= 0 (and NaN, as torch does)
-                t0, t1, t2 = not s0 + 0.5 < 0.0, not s1 + 0.5 < 0.0, not s2 + 0.5 < 0.0
-                for k in range(n_bases):
+                # clamp_min passes the gradient where SH + 0.5 >= 0 (and NaN, as torch does); a channel it
+                # stops adds +-0 below, the same bits as no term. Indexed without views of the coefficient
+                # rows and without branches in the loop over k, which LLVM then unrolls.
+                h0 = g0 if not s0 + 0.5 < 0.0 else 0.0
+                h1 = g1 if not s1 + 0.5 < 0.0 else 0.0
+                h2 = g2 if not s2 + 0.5 < 0.0 else 0.0
+                b = bases[0]
+                g_dc[m, n, 0] += b * h0
+                g_dc[m, n, 1] += b * h1
+                g_dc[m, n, 2] += b * h2
+                g_bases[0] = dc[m, n, 0] * h0 + dc[m, n, 1] * h1 + dc[m, n, 2] * h2
+                for k in range(1, n_bases):
                     b = bases[k]
-                    coef = dc[m, n] if k == 0 else rest[m, n, k - 1]
-                    grad = g_dc[m, n] if k == 0 else g_rest[m, n, k - 1]
-                    gb = 0.0
-                    if t0:
-                        grad[0] += b * g0
-                        gb += coef[0] * g0
-                    if t1:
-                        grad[1] += b * g1
-                        gb += coef[1] * g1
-                    if t2:
-                        grad[2] += b * g2
-                        gb += coef[2] * g2
-                    g_bases[k] = gb
+                    g_rest[m, n, k - 1, 0] += b * h0
+                    g_rest[m, n, k - 1, 1] += b * h1
+                    g_rest[m, n, k - 1, 2] += b * h2
+                    g_bases[k] = rest[m, n, k - 1, 0] * h0 + rest[m, n, k - 1, 1] * h1 + rest[m, n, k - 1, 2] * h2
                 if degree == 0:
                     continue
                 gx, gy, gz = _sh_bases_vjp(degree, dirn[0], dirn[1], dirn[2], g_bases)

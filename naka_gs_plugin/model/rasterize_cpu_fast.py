@@ -104,35 +104,59 @@ opacity (5), the lenient ellipse's level and conic determinant (6, 7; :func:`_el
 colours (8..). The pixel boxes are a separate int64 array."""
 
 
+_SORT_DIGIT_BITS = 12
+"""Widest digit of :func:`_stable_argsort`: its counts (4,097 int64) stay in L1."""
+
+
 @njit(cache=True)
 def _stable_argsort(keys):
-    """Stable argsort of finite floats: LSD radix sort (8-bit digits) on their float64 bits mapped to
-    order-preserving unsigned integers; digits that all keys share are skipped (the low 29 bits of
-    float32 keys are zero). Gives ``torch.argsort(stable=True)``'s order; several times faster than
-    numba's merge sort."""
+    """Stable argsort of finite floats: LSD radix sort on their float64 bits mapped to order-preserving
+    unsigned integers. Only the bits that differ between keys are sorted on (float32 keys have 29 zero
+    low bits; depths in a scene share their sign and most of their exponent), split evenly into digits
+    of at most ``_SORT_DIGIT_BITS``; every digit's counts come from one pass, and each scatter moves the
+    keys with their indices (sequential reads). Gives ``torch.argsort(stable=True)``'s order."""
     n = keys.shape[0]
     bits = (keys.astype(np.float64) + 0.0).view(np.uint64)  # + 0.0: -0.0 becomes 0.0, its equal
     sign = np.uint64(1) << np.uint64(63)
+    all_and, all_or = ~np.uint64(0), np.uint64(0)
     for i in range(n):
-        bits[i] = ~bits[i] if bits[i] & sign else bits[i] | sign
+        b = ~bits[i] if bits[i] & sign else bits[i] | sign
+        bits[i] = b
+        all_and &= b
+        all_or |= b
     order = np.arange(n)
+    varying = all_and ^ all_or
+    if varying == 0:
+        return order
+    lo, hi = 0, 63
+    while not (varying >> np.uint64(lo)) & np.uint64(1):
+        lo += 1
+    while not (varying >> np.uint64(hi)) & np.uint64(1):
+        hi -= 1
+    n_digits = (hi - lo + _SORT_DIGIT_BITS) // _SORT_DIGIT_BITS
+    width = (hi - lo + n_digits) // n_digits
+    mask = (np.uint64(1) << np.uint64(width)) - np.uint64(1)
+    counts = np.zeros((n_digits, (1 << width) + 1), dtype=np.int64)
+    for i in range(n):
+        b = bits[i] >> np.uint64(lo)
+        for d in range(n_digits):
+            counts[d, np.int64((b >> np.uint64(d * width)) & mask) + 1] += 1
+    keys_in, keys_out = bits, np.empty(n, dtype=np.uint64)
     scratch = np.empty(n, dtype=np.int64)
-    counts = np.empty(257, dtype=np.int64)
-    for shift in range(0, 64, 8):
-        counts[:] = 0
-        sh = np.uint64(shift)
+    for d in range(n_digits):
+        starts = counts[d]
+        for j in range(starts.shape[0] - 1):
+            starts[j + 1] += starts[j]
+        sh = np.uint64(lo + d * width)
         for i in range(n):
-            counts[np.int64((bits[i] >> sh) & np.uint64(255)) + 1] += 1
-        if counts.max() == n:
-            continue
-        for d in range(256):
-            counts[d + 1] += counts[d]
-        for i in range(n):
-            o = order[i]
-            d = np.int64((bits[o] >> sh) & np.uint64(255))
-            scratch[counts[d]] = o
-            counts[d] += 1
+            b = keys_in[i]
+            q = np.int64((b >> sh) & mask)
+            p = starts[q]
+            starts[q] = p + 1
+            keys_out[p] = b
+            scratch[p] = order[i]
         order, scratch = scratch, order
+        keys_in, keys_out = keys_out, keys_in
     return order
 
 
