@@ -786,6 +786,13 @@ def _forward_kernel_rgb32(
     return out, t_final, last
 
 
+@njit(cache=True, inline="always")
+def _lane_sum(acc, row):
+    """The sum of the 8 lanes ``acc[row * LANES : (row + 1) * LANES]``, pairwise."""
+    o = row * LANES
+    return ((acc[o] + acc[o + 1]) + (acc[o + 2] + acc[o + 3])) + ((acc[o + 4] + acc[o + 5]) + (acc[o + 6] + acc[o + 7]))
+
+
 @njit(parallel=True, cache=True, fastmath={"reassoc", "nsz"})
 def _backward_kernel_rgb32(
     tile_order,
@@ -811,9 +818,10 @@ def _backward_kernel_rgb32(
     ``last``: each pixel walked back to front, 8 pixels of a tile row at a time, alphas recomputed
     (nothing stored by the forward), float32 ``slots`` [K, N_GRAD + 3].
 
-    An entry's gradient sums are scalars reduced over the lanes: ``reassoc`` lets LLVM keep them as
-    8-wide partial sums added up once per half row (another summation order than the generic
-    kernel's, fixed for a given build, so results do not depend on the thread count). The 8 pixels
+    An entry's gradient sums are kept per lane (``acc``, 11 rows of 8) over all its rows in the tile
+    and added across the lanes once per entry (:func:`_lane_sum`): kept as scalars, LLVM reduces its
+    8-wide partial sums after every half row, eleven horizontal sums per vector of pixels. Another
+    summation order than the generic kernel's, fixed, so results do not depend on the thread count. The 8 pixels
     of a half row are skipped once the entry lies behind all their last entries. State planes:
     transmittance, the colour behind, last entry, upstream ``grad_q``, dL/dr, g, b, pixel centre x."""
     tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
@@ -826,6 +834,7 @@ def _backward_kernel_rgb32(
         cam, x0, y0, x1, y1 = _tile_box(tile, tiles_x, tiles_y, width, height)
         tw = x1 - x0
         st = np.zeros(8 * _PLANE + LANES, dtype=np.float32)
+        acc = np.zeros((N_GRAD + 3) * LANES, dtype=np.float32)  # slot columns x lanes
         half_last = np.zeros(2 * TILE_SIZE, dtype=np.int64)  # per 8 pixels of a tile row: their last entry
         k_end = 0
         for r in range(TILE_SIZE):
@@ -849,7 +858,7 @@ def _backward_kernel_rgb32(
             mx, my, a, b, c, opacity = rec[0], rec[1], rec[2], rec[3], rec[4], rec[5]
             c0, c1, c2 = rec[REC_COLORS], rec[REC_COLORS + 1], rec[REC_COLORS + 2]
             entry = np.float32(kk)
-            g_mx = g_my = g_absx = g_absy = g_ca = g_cb = g_cc = g_op = g_r = g_g = g_b = zero
+            acc[:] = zero
             for py in range(slot_y[k, 0], slot_y[k, 1] + 1):
                 lo_i = max(np.int64(spans[slot_rows[k] + py, 0]), x0)
                 hi_i = min(np.int64(spans[slot_rows[k] + py, 1]), x1 - 1)
@@ -879,25 +888,24 @@ def _backward_kernel_rgb32(
                         grad_alpha = t_before * gc - (behind + v[3 * _PLANE + q]) * inv
                         v[q] = t_before if ok else v[q]
                         v[_PLANE + q] = behind + weight * gc
-                        g_r += weight * gr
-                        g_g += weight * gg
-                        g_b += weight * gb
                         # alpha clamped at ALPHA_MAX: no gradient to the geometry or opacity.
                         ga = grad_alpha if ok & (raw <= alpha_max) else zero
                         gs = -raw * ga  # d/dsigma
-                        g_op += vis * ga
                         gmx = gs * (a * dx + b * dy)
                         gmy = gs * (b * dx + c * dy)
-                        g_mx += gmx
-                        g_my += gmy
-                        g_absx += abs(gmx)
-                        g_absy += abs(gmy)
-                        g_ca += half * gs * dx * dx
-                        g_cb += gs * dx * dy
-                        g_cc += half * gs * dy * dy
-            slots[k, 0], slots[k, 1], slots[k, 2], slots[k, 3] = g_mx, g_my, g_absx, g_absy
-            slots[k, 4], slots[k, 5], slots[k, 6], slots[k, 7] = g_ca, g_cb, g_cc, g_op
-            slots[k, N_GRAD], slots[k, N_GRAD + 1], slots[k, N_GRAD + 2] = g_r, g_g, g_b
+                        acc[q] += gmx
+                        acc[LANES + q] += gmy
+                        acc[2 * LANES + q] += abs(gmx)
+                        acc[3 * LANES + q] += abs(gmy)
+                        acc[4 * LANES + q] += half * gs * dx * dx
+                        acc[5 * LANES + q] += gs * dx * dy
+                        acc[6 * LANES + q] += half * gs * dy * dy
+                        acc[7 * LANES + q] += vis * ga
+                        acc[N_GRAD * LANES + q] += weight * gr
+                        acc[(N_GRAD + 1) * LANES + q] += weight * gg
+                        acc[(N_GRAD + 2) * LANES + q] += weight * gb
+            for col in range(N_GRAD + 3):
+                slots[k, col] = _lane_sum(acc, col)
 
 
 @njit(parallel=True, cache=True)
