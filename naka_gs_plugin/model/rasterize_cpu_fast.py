@@ -635,7 +635,9 @@ def _backward_kernel(
 LANES = 8
 """Pixels the float32 RGB kernels evaluate as one vector (AVX2's 8 float32 lanes): a tile row is
 two such halves. Passed to the kernels at run time: a constant trip count gets the lane loop
-unrolled, and LLVM does not vectorise the unrolled stores (they may alias)."""
+unrolled, and LLVM does not vectorise the unrolled stores (they may alias). The kernels loop over
+``lanes & -LANES``, a multiple of LANES to LLVM, which then emits no scalar remainder loop (and no
+register shuffling between the two loops) after each vector."""
 
 _PLANE = TILE_SIZE * TILE_SIZE
 _MAX_LAST_F32 = 1 << 24
@@ -753,7 +755,7 @@ def _forward_kernel_rgb32(
                 cdy, bdy = c * dy * dy, b * dy
                 for h in range((lo_i - x0) // LANES, (hi_i - x0) // LANES + 1):
                     v = st[(py - y0) * TILE_SIZE + h * LANES :]
-                    for q in range(lanes):
+                    for q in range(lanes & -LANES):
                         px = v[6 * _PLANE + q]
                         dx = mx - px
                         sigma, vis = _sigma_vis_f32(dx, cdy, bdy, a)
@@ -871,7 +873,7 @@ def _backward_kernel_rgb32(
                     if kk >= half_last[(py - y0) * 2 + h]:
                         continue
                     v = st[(py - y0) * TILE_SIZE + h * LANES :]
-                    for q in range(lanes):
+                    for q in range(lanes & -LANES):
                         px = v[7 * _PLANE + q]
                         dx = mx - px
                         sigma, vis = _sigma_vis_f32(dx, cdy, bdy, a)
