@@ -18,7 +18,7 @@ import statistics
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Dict, List, Optional, Sequence, Tuple, Union
 
 import numba
 import torch
@@ -84,11 +84,25 @@ def forward_backward(
     """Render each view and backpropagate ``sum(weights * colour)``; each view's colours and gradients."""
     results = []
     for kwargs, weight in zip(renders, weights):
-        inputs = {k: kwargs[k].detach().clone().requires_grad_() for k in PARAMS}
+        inputs = {k: _leaf(kwargs[k]) for k in PARAMS}
         colors, _, _ = cpu_fast.rasterization(**{**kwargs, **inputs})
         (colors * weight).sum().backward()
-        results.append((colors.detach(), {k: inputs[k].grad for k in PARAMS}))
+        results.append((colors.detach(), {k: _grad(inputs[k]) for k in PARAMS}))
     return results
+
+
+def _leaf(value: Union[torch.Tensor, Tuple[torch.Tensor, ...]]) -> Union[torch.Tensor, Tuple[torch.Tensor, ...]]:
+    """A leaf copy; of each part for the model's SH colours ``(features_dc, features_rest)``."""
+    if isinstance(value, tuple):
+        return tuple(part.detach().clone().requires_grad_() for part in value)
+    return value.detach().clone().requires_grad_()
+
+
+def _grad(value: Union[torch.Tensor, Tuple[torch.Tensor, ...]]) -> torch.Tensor:
+    """The leaf's gradient; the parts' side by side, one row per Gaussian, for a tuple."""
+    if isinstance(value, tuple):
+        return torch.cat([part.grad.reshape(part.shape[0], -1) for part in value], 1)
+    return value.grad
 
 
 def span_width(renders: List[Dict]) -> Tuple[float, bool]:
