@@ -257,7 +257,12 @@ def test_appearance_absorbs_one_views_exposure(frames):
     assert ratios[2] < 0.8 and others.min() > ratios[2] + 0.15, f"rendered / canonical brightness per view: {ratios}"
 
 
-def test_the_loss_uses_the_compiled_ssim_with_upstreams_value_and_gradient(frames):
+def test_the_loss_is_upstreams_value_and_gradient_from_the_fused_l1_and_ssim(frames):
+    """The training loss comes from one node of compiled kernels (L1 and SSIM together) and equals splatfacto's own
+    ``get_loss_dict`` with ``pytorch_msssim``'s module, in value and in the means' gradient."""
+    from unittest import mock
+
+    from nerfstudio.models.splatfacto import SplatfactoModel
     from pytorch_msssim import SSIM
 
     from naka_gs_plugin.model.ssim import SSIMLoss
@@ -268,15 +273,43 @@ def test_the_loss_uses_the_compiled_ssim_with_upstreams_value_and_gradient(frame
     model.train()
     model.step, model.optimizers = 0, {}
     results = []
-    for ssim in (model.ssim, SSIM(data_range=1.0, size_average=True, channel=3)):
+    fused = model.ssim
+    for ssim, get_loss_dict in (
+        (fused, model.get_loss_dict),
+        (SSIM(data_range=1.0, size_average=True, channel=3), None),
+    ):
         model.ssim = ssim
         model.zero_grad()
         torch.manual_seed(0)  # splatfacto's training background is random
-        loss = model.get_loss_dict(model.get_outputs(cameras[0:1]), {"image": images[0]})["main_loss"]
-        loss.backward()
-        results.append((loss.detach(), model.means.grad.clone()))
-    torch.testing.assert_close(results[0][0], results[1][0], rtol=0, atol=1e-6)
-    torch.testing.assert_close(results[0][1], results[1][1], rtol=1e-3, atol=1e-3 * float(results[1][1].abs().max()))
+        outputs = model.get_outputs(cameras[0:1])
+        if get_loss_dict is None:
+            loss_dict = SplatfactoModel.get_loss_dict(model, outputs, {"image": images[0]})
+        else:
+            with mock.patch.object(SSIMLoss, "l1_ssim_loss", autospec=True, side_effect=SSIMLoss.l1_ssim_loss) as spy:
+                loss_dict = get_loss_dict(outputs, {"image": images[0]})
+            assert spy.call_count == 1
+        loss_dict["main_loss"].backward()
+        results.append((sorted(loss_dict), loss_dict["main_loss"].detach(), model.means.grad.clone()))
+    assert results[0][0] == results[1][0]
+    torch.testing.assert_close(results[0][1], results[1][1], rtol=0, atol=1e-6)
+    torch.testing.assert_close(results[0][2], results[1][2], rtol=1e-3, atol=1e-3 * float(results[1][2].abs().max()))
+
+
+def test_a_masked_loss_is_upstreams_own(frames):
+    """With a mask (which the fused loss does not take), the loss is splatfacto's ``get_loss_dict``, bit for bit."""
+    from nerfstudio.models.splatfacto import SplatfactoModel
+
+    cameras, images = frames
+    model, _, _ = _model()
+    model.train()
+    model.step, model.optimizers = 10**6, {}
+    mask = torch.ones(*images[0].shape[:2], 1, dtype=torch.bool)
+    mask[: mask.shape[0] // 2] = False
+    losses = []
+    for get_loss_dict in (model.get_loss_dict, lambda *a: SplatfactoModel.get_loss_dict(model, *a)):
+        torch.manual_seed(0)
+        losses.append(get_loss_dict(model.get_outputs(cameras[0:1]), {"image": images[0], "mask": mask})["main_loss"])
+    assert torch.equal(losses[0], losses[1])
 
 
 def test_the_psnr_is_torchmetrics_value_outside_autograd(frames):

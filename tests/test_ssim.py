@@ -2,7 +2,8 @@
 
 Forward and backward of the fused kernels are checked with ``assert_close`` against pytorch_msssim evaluated
 in float64 (the exact value of what both compute in float32), on images as splatfacto passes them (NCHW
-views of HWC tensors); inputs the kernels do not take run pytorch_msssim itself.
+views of HWC tensors); inputs the kernels do not take run pytorch_msssim itself. The same for the training loss
+with its L1 term (``SSIMLoss.l1_ssim_loss``, against splatfacto's formula) and PSNR's squared error.
 """
 
 from __future__ import annotations
@@ -106,3 +107,65 @@ def test_eval_metric_without_grad_equals_the_loss_value():
         metric = FUSED(_nchw(gt), _nchw(pred))
     value, _, _ = _value_and_grads(FUSED, gt, pred, grad_gt=False, grad_pred=True)
     assert torch.equal(metric, value)
+
+
+def _l1_ssim_reference(gt, pred, ssim_lambda):
+    """Splatfacto's main loss as its ``get_loss_dict`` writes it, with pytorch_msssim's module."""
+    return (1 - ssim_lambda) * torch.abs(gt - pred).mean() + ssim_lambda * (1 - REFERENCE(_nchw(gt), _nchw(pred)))
+
+
+@pytest.mark.parametrize("height, width, n", [(11, 11, 1), (61, 45, 2), (120, 160, 1)])
+@pytest.mark.parametrize("grads", ["pred", "gt", "both"])
+def test_the_l1_ssim_loss_matches_splatfactos_in_value_and_gradient(height, width, n, grads):
+    gt, pred = _pair(height, width, n)
+    pred[0, 0, 0] = gt[0, 0, 0]  # |x - y| at 0: torch's gradient there is 0, as the kernel's sign(0)
+    results = []
+    for fused in (True, False):
+        a = gt.clone() if fused else gt.double()
+        b = pred.clone() if fused else pred.double()
+        a.requires_grad_(grads in ("gt", "both"))
+        b.requires_grad_(grads in ("pred", "both"))
+        loss = FUSED.l1_ssim_loss(_nchw(a), _nchw(b), 0.2) if fused else _l1_ssim_reference(a, b, 0.2)
+        loss.backward()
+        results.append((loss.detach(), a.grad, b.grad))
+    (value, g_gt, g_pred), (ref_value, ref_gt, ref_pred) = results
+    assert value.dtype == torch.float32
+    torch.testing.assert_close(value.double(), ref_value, rtol=0, atol=2e-6)
+    for got, ref in ((g_gt, ref_gt), (g_pred, ref_pred)):
+        assert (got is None) == (ref is None)
+        if ref is not None:
+            torch.testing.assert_close(got.double(), ref, rtol=0, atol=1e-4 * float(ref.abs().max()))
+
+
+def test_the_l1_ssim_loss_does_not_depend_on_the_thread_count():
+    gt, pred = _pair(64, 80)
+    threads = numba.get_num_threads()
+    runs = []
+    try:
+        for count in (1, threads):
+            numba.set_num_threads(count)
+            b = pred.clone().requires_grad_(True)
+            loss = FUSED.l1_ssim_loss(_nchw(gt), _nchw(b), 0.2)
+            loss.backward()
+            runs.append((loss.detach(), b.grad))
+    finally:
+        numba.set_num_threads(threads)
+    assert torch.equal(runs[0][0], runs[1][0]) and torch.equal(runs[0][1], runs[1][1])
+
+
+def test_the_l1_ssim_loss_on_inputs_the_kernels_do_not_take_is_splatfactos_formula():
+    gt, pred = _pair(30, 30)
+    gt, pred = gt.double(), pred.double().requires_grad_(True)
+    loss = FUSED.l1_ssim_loss(_nchw(gt), _nchw(pred), 0.2)
+    torch.testing.assert_close(loss, _l1_ssim_reference(gt, pred, 0.2), rtol=0, atol=0)
+
+
+def test_squared_error_sum_is_the_exact_sum_and_none_where_the_kernel_does_not_apply():
+    from naka_gs_plugin.model.ssim import squared_error_sum
+
+    gt, pred = _pair(37, 53)
+    exact = float(((gt.double() - pred.double()) ** 2).sum())
+    assert squared_error_sum(pred[0], gt[0]) == pytest.approx(exact, rel=1e-12)
+    assert squared_error_sum(pred[0].permute(1, 0, 2), gt[0].permute(1, 0, 2)) == pytest.approx(exact, rel=1e-12)
+    assert squared_error_sum(pred.double(), gt.double()) is None
+    assert squared_error_sum(pred[0], gt[0, :-1]) is None

@@ -29,6 +29,7 @@ stock splatfacto breaks on a CPU-only or offline machine:
 
 from __future__ import annotations
 
+import math
 import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -48,7 +49,7 @@ from naka_gs_plugin.model.appearance import ViewAppearance
 from naka_gs_plugin.model.composite import composite
 from naka_gs_plugin.model.lpips import LazyLPIPS, LPIPSWeightsError, load_lpips
 from naka_gs_plugin.model.projection import MAX_SH_DEGREE
-from naka_gs_plugin.model.ssim import SSIMLoss
+from naka_gs_plugin.model.ssim import SSIMLoss, squared_error_sum
 
 
 class NonFiniteTrainingError(RuntimeError):
@@ -118,7 +119,11 @@ class PairPSNR(torch.nn.Module):
 
     def forward(self, preds: Float[Tensor, "*shape"], target: Float[Tensor, "*shape"]) -> Float[Tensor, ""]:
         with torch.no_grad():
-            return peak_signal_noise_ratio(preds, target, data_range=1.0)
+            squared = squared_error_sum(preds, target)  # one compiled pass on a CPU, else None
+            if squared is None:
+                return peak_signal_noise_ratio(preds, target, data_range=1.0)
+            mse = squared / preds.numel()
+            return preds.new_tensor(-10.0 * math.log10(mse) if mse > 0 else math.inf)
 
 
 def viewmat_from_c2w(c2w: Float[Tensor, "C 3 4"]) -> Float[Tensor, "C 4 4"]:
@@ -343,13 +348,30 @@ class NakaGSModel(SplatfactoModel):
 
     # ------------------------------------------------------------------ safety and metrics
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, Tensor]:
-        loss_dict = super().get_loss_dict(outputs, batch, metrics_dict)
+        if "mask" in batch or self.config.use_scale_regularization or self.config.use_bilateral_grid:
+            loss_dict = super().get_loss_dict(outputs, batch, metrics_dict)
+        else:
+            loss_dict = self._photometric_loss_dict(outputs, batch)
         bad = [k for k, v in loss_dict.items() if not all_finite(v)]
         if bad:
             raise NonFiniteTrainingError(
                 f"non-finite loss ({', '.join(bad)}) at step {self.step}: training stopped before the optimizer "
                 "step; the last checkpoint is intact -- lower the learning rates or check the input images"
             )
+        return loss_dict
+
+    def _photometric_loss_dict(self, outputs, batch) -> Dict[str, Tensor]:
+        """Splatfacto's ``get_loss_dict`` where no mask, scale regularisation or bilateral grid takes part (that
+        method is the reference the tests compare this with): the same losses, its L1 and SSIM terms computed as
+        one node (:meth:`.ssim.SSIMLoss.l1_ssim_loss`)."""
+        gt_img = self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
+        pred_img = outputs["rgb"]
+        main_loss = self.ssim.l1_ssim_loss(
+            gt_img.permute(2, 0, 1)[None, ...], pred_img.permute(2, 0, 1)[None, ...], self.config.ssim_lambda
+        )
+        loss_dict = {"main_loss": main_loss, "scale_reg": torch.tensor(0.0).to(self.device)}
+        if self.training:
+            self.camera_optimizer.get_loss_dict(loss_dict)
         return loss_dict
 
     def step_post_backward(self, step):

@@ -8,7 +8,7 @@ two transposed blurs of those three maps. Images are (H, W*C) float32 rows of in
 splatfacto's images are), arithmetic is float32 as the reference's (sums over the window in another order), each
 row's sum of the map is float64. The window's length and the channel count are compile-time constants
 (:data:`TAPS`, :data:`CHANNELS`: splatfacto's 11 taps and RGB), so the taps unroll. Every output row is computed by one thread alone, so the results do not depend
-on the thread count. No ``fastmath``. Kernels compile on first use and are cached on disk by numba (as
+on the thread count. No ``fastmath`` but in :func:`_error_kernel`'s sums. Kernels compile on first use and are cached on disk by numba (as
 :mod:`.rasterize_cpu_fast`'s).
 """
 
@@ -105,13 +105,32 @@ def _spread_at(q, g, m, e, c, s0, s1, s2):
     s0[q], s1[q], s2[q] = a0, a1, a2
 
 
+@njit(parallel=True, cache=True, fastmath={"reassoc"})
+def _error_kernel(x, y, abs_rows, square_rows):
+    """x, y: (H, W*C). Fills ``abs_rows[r]`` and ``square_rows[r]`` with the sums of |x - y| and (x - y)^2 over row
+    r, in float64. The one fast-math flag, ``reassoc``, lets LLVM sum a row in vector lanes (a quarter of the time of
+    one sequential sum); NaN and infinities still propagate, and the order of the sums is fixed at compile time, so
+    the bits do not depend on the thread count (only, in the last place, on the CPU's vector width)."""
+    for r in prange(x.shape[0]):
+        xr, yr = x[r], y[r]
+        total, squares = 0.0, 0.0
+        for q in range(x.shape[1]):
+            d = np.float64(xr[q]) - np.float64(yr[q])
+            total += abs(d)
+            squares += d * d
+        abs_rows[r] = total
+        square_rows[r] = squares
+
+
 @njit(parallel=True, cache=True)
-def _backward_kernel(x, y, g, p_m, p_e, p_c, scale, grad_x):
-    """grad_x (H, W*C) = scale * (G^T p_m + 2 x G^T p_e + y G^T p_c), G the valid separable blur: the transposed
-    horizontal blur of each map row, then the transposed vertical blur, each as a gather over the taps."""
+def _backward_kernel(x, y, g, p_m, p_e, p_c, scale, l1_scale, grad_x):
+    """grad_x (H, W*C) = scale * (G^T p_m + 2 x G^T p_e + y G^T p_c) + l1_scale * sign(x - y), G the valid separable
+    blur: the transposed horizontal blur of each map row, then the transposed vertical blur, each as a gather over
+    the taps; the last term is the gradient of an L1 term (sign(0) = 0, as torch's)."""
     two = np.float32(2.0)
     zero = np.float32(0.0)
     scale = np.float32(scale)
+    l1_scale = np.float32(l1_scale)
     out_rows, out_width = p_m.shape
     rows, width = x.shape
     edge = (TAPS - 1) * CHANNELS
@@ -144,7 +163,10 @@ def _backward_kernel(x, y, g, p_m, p_e, p_c, scale, grad_x):
                     a0 += w * sp0[j, q]
                     a1 += w * sp1[j, q]
                     a2 += w * sp2[j, q]
-                out[q] = scale * (a0 + two * xr[q] * a1 + yr[q] * a2)
+                d = xr[q] - yr[q]
+                out[q] = scale * (a0 + two * xr[q] * a1 + yr[q] * a2) + l1_scale * (
+                    np.float32(d > zero) - np.float32(d < zero)
+                )
         else:
             lo, hi = max(0, r - out_rows + 1), min(TAPS, r + 1)
             for q in range(width):
@@ -154,7 +176,10 @@ def _backward_kernel(x, y, g, p_m, p_e, p_c, scale, grad_x):
                     a0 += w * sp0[r - t, q]
                     a1 += w * sp1[r - t, q]
                     a2 += w * sp2[r - t, q]
-                out[q] = scale * (a0 + two * xr[q] * a1 + yr[q] * a2)
+                d = xr[q] - yr[q]
+                out[q] = scale * (a0 + two * xr[q] * a1 + yr[q] * a2) + l1_scale * (
+                    np.float32(d > zero) - np.float32(d < zero)
+                )
 
 
 def _rows(image: Float[Tensor, "C H W"]) -> np.ndarray:
@@ -162,15 +187,31 @@ def _rows(image: Float[Tensor, "C H W"]) -> np.ndarray:
     return np.ascontiguousarray(image.detach().permute(1, 2, 0).reshape(image.shape[1], -1).numpy())
 
 
+@untraced()
+def error_sums(a: Float[Tensor, "*shape"], b: Float[Tensor, "*shape"]) -> tuple:
+    """Sums of |a - b| and (a - b)^2 over every element of two float32 CPU tensors of one shape (at least 1D), as
+    Python floats: float64 arithmetic, the same bits with any thread count. Contiguous tensors are read in place."""
+    x = np.ascontiguousarray(a.detach().reshape(a.shape[0] if a.dim() > 1 else 1, -1).numpy())
+    y = np.ascontiguousarray(b.detach().reshape(x.shape).numpy())
+    abs_rows, square_rows = np.empty(x.shape[0], np.float64), np.empty(x.shape[0], np.float64)
+    _error_kernel(x, y, abs_rows, square_rows)
+    return float(abs_rows.sum()), float(square_rows.sum())
+
+
 class _FusedSSIM(torch.autograd.Function):
+    """``ssim_weight * SSIM(X, Y) + l1_weight * mean|X - Y|``: the L1 term's value from one more pass over the
+    images, its gradient inside the SSIM's backward kernel (no pass of its own)."""
+
     @staticmethod
     @untraced()
-    def forward(ctx, X: Tensor, Y: Tensor, window: np.ndarray, c1: float, c2: float) -> Tensor:
+    def forward(
+        ctx, X: Tensor, Y: Tensor, window: np.ndarray, c1: float, c2: float, ssim_weight: float, l1_weight: float
+    ) -> Tensor:
         n, channels, height, width = X.shape
         taps = window.shape[0]
         out_shape = (height - taps + 1, (width - taps + 1) * channels)
         grads = [i for i, need in enumerate(ctx.needs_input_grad[:2]) if need]
-        total = 0.0
+        total, abs_total = 0.0, 0.0
         saved = []
         for b in range(n):
             x, y = _rows(X[b]), _rows(Y[b])
@@ -185,27 +226,33 @@ class _FusedSSIM(torch.autograd.Function):
                 unused = np.empty((1, 1), np.float32)
                 _forward_kernel(x, y, window, c1, c2, False, row_sums, unused, unused, unused)
             total += float(row_sums.sum())
+            if l1_weight:
+                abs_rows, square_rows = np.empty(height, np.float64), np.empty(height, np.float64)
+                _error_kernel(x, y, abs_rows, square_rows)
+                abs_total += float(abs_rows.sum())
             saved.append((x, y, partials))
         ctx.saved = saved
-        ctx.window, ctx.grads, ctx.shape = window, grads, X.shape
+        ctx.window, ctx.grads, ctx.shape, ctx.weights = window, grads, X.shape, (ssim_weight, l1_weight)
         ctx.count = n * channels * (height - taps + 1) * (width - taps + 1)
-        return X.new_tensor(total / ctx.count)
+        return X.new_tensor(ssim_weight * total / ctx.count + l1_weight * abs_total / X.numel())
 
     @staticmethod
     @untraced()
     def backward(ctx, grad_output: Tensor):
         n, channels, height, width = ctx.shape
-        scale = float(grad_output) / ctx.count
+        ssim_weight, l1_weight = ctx.weights
+        scale = float(grad_output) * ssim_weight / ctx.count
+        l1_scale = float(grad_output) * l1_weight / (n * channels * height * width)
         out = [None, None]
         for which in ctx.grads:
             grad = torch.empty(n, height, width, channels, dtype=torch.float32)
             for b, (x, y, partials) in enumerate(ctx.saved):
                 first, second = (x, y) if which == 0 else (y, x)
                 maps = partials[ctx.grads.index(which)]
-                _backward_kernel(first, second, ctx.window, *maps, scale, grad[b].view(height, -1).numpy())
+                _backward_kernel(first, second, ctx.window, *maps, scale, l1_scale, grad[b].view(height, -1).numpy())
             out[which] = grad.permute(0, 3, 1, 2)
         ctx.saved = None
-        return out[0], out[1], None, None, None
+        return out[0], out[1], None, None, None, None, None
 
 
 def ssim_cpu_fast(
@@ -213,4 +260,17 @@ def ssim_cpu_fast(
 ) -> Tensor:
     """Mean SSIM of float32 CPU images with :data:`CHANNELS` channels (H, W >= :data:`TAPS`) with the 1D ``window``
     of :data:`TAPS` taps, ``C1 = c1``, ``C2 = c2``; differentiable in whichever inputs require a gradient."""
-    return _FusedSSIM.apply(X, Y, window, c1, c2)
+    return _FusedSSIM.apply(X, Y, window, c1, c2, 1.0, 0.0)
+
+
+def l1_ssim_loss_cpu_fast(
+    X: Float[Tensor, "N C H W"],
+    Y: Float[Tensor, "N C H W"],
+    window: Float[np.ndarray, " K"],
+    c1: float,
+    c2: float,
+    ssim_lambda: float,
+) -> Tensor:
+    """Splatfacto's training loss ``(1 - ssim_lambda) * mean|X - Y| + ssim_lambda * (1 - SSIM(X, Y))`` of the images
+    :func:`ssim_cpu_fast` takes, in one autograd node: the L1 term's gradient is added inside the SSIM's backward."""
+    return ssim_lambda + _FusedSSIM.apply(X, Y, window, c1, c2, -ssim_lambda, 1.0 - ssim_lambda)
