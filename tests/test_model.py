@@ -312,6 +312,30 @@ def test_a_masked_loss_is_upstreams_own(frames):
     assert torch.equal(losses[0], losses[1])
 
 
+def test_training_metrics_are_computed_only_at_the_steps_the_trainer_writes(frames):
+    from types import SimpleNamespace
+
+    from nerfstudio.engine.callbacks import TrainingCallbackAttributes
+
+    cameras, images = frames
+    model, _, _ = _model()
+    trainer = SimpleNamespace(config=SimpleNamespace(logging=SimpleNamespace(steps_per_log=10)))
+    model.get_training_callbacks(
+        TrainingCallbackAttributes(optimizers=None, grad_scaler=None, pipeline=None, trainer=trainer)
+    )
+    model.train()
+    model.optimizers = {}
+    written = {}
+    for step in (0, 3, 10, 19, 20):
+        model.step = step
+        written[step] = sorted(model.get_metrics_dict(model.get_outputs(cameras[0:1]), {"image": images[0]}))
+    assert written[3] == written[19] == [] and written[0] == written[10] == written[20] and "psnr" in written[0]
+    model.eval()
+    model.step = 3
+    with torch.no_grad():
+        assert "psnr" in model.get_metrics_dict(model.get_outputs(cameras[0:1]), {"image": images[0]})
+
+
 def test_the_psnr_is_torchmetrics_value_outside_autograd(frames):
     """Splatfacto's per-step training PSNR and eval PSNR: the value of torchmetrics' module, without a graph."""
     from torchmetrics.image import PeakSignalNoiseRatio

@@ -39,7 +39,9 @@ from unittest import mock
 import torch
 from jaxtyping import Float
 from nerfstudio.cameras.cameras import Cameras
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes
 from nerfstudio.models.splatfacto import RGB2SH, SplatfactoModel, SplatfactoModelConfig
+from nerfstudio.utils.misc import step_check
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 from torch.nn import Parameter
@@ -176,6 +178,7 @@ class NakaGSModel(SplatfactoModel):
             self.gauss_params["features_dc"].data.copy_(dc)
         self.view_appearance = ViewAppearance(self.num_train_data) if self.config.appearance == "affine" else None
         self._backend_logged: Optional[str] = None
+        self._metrics_every = 0  # the trainer's --logging.steps-per-log, once it has set up its callbacks
 
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
         groups = super().get_param_groups()
@@ -347,6 +350,22 @@ class NakaGSModel(SplatfactoModel):
         return out
 
     # ------------------------------------------------------------------ safety and metrics
+    def get_training_callbacks(
+        self, training_callback_attributes: TrainingCallbackAttributes
+    ) -> List[TrainingCallback]:
+        trainer = training_callback_attributes.trainer
+        if trainer is not None:
+            self._metrics_every = trainer.config.logging.steps_per_log
+        return super().get_training_callbacks(training_callback_attributes)
+
+    def get_metrics_dict(self, outputs, batch) -> Dict[str, Tensor]:
+        """Splatfacto's metrics; in training, only at the steps whose metrics the trainer writes (every
+        ``--logging.steps-per-log``, from step 0): nerfstudio discards the others, and their PSNR is a pass over
+        the full-size images at every step."""
+        if self.training and self._metrics_every and not step_check(self.step, self._metrics_every, run_at_zero=True):
+            return {}
+        return super().get_metrics_dict(outputs, batch)
+
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, Tensor]:
         if "mask" in batch or self.config.use_scale_regularization or self.config.use_bilateral_grid:
             loss_dict = super().get_loss_dict(outputs, batch, metrics_dict)
