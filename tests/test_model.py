@@ -312,6 +312,23 @@ def test_a_masked_loss_is_upstreams_own(frames):
     assert torch.equal(losses[0], losses[1])
 
 
+@pytest.mark.parametrize("case", ["equal", "nan", "float64"])
+def test_pair_psnr_is_torchmetrics_value_on_edge_cases(case):
+    from torchmetrics.functional.image import peak_signal_noise_ratio
+
+    from naka_gs_plugin.model.naka_gs_model import PairPSNR
+
+    gen = torch.Generator().manual_seed(0)
+    target = torch.rand(20, 30, 3, generator=gen)
+    preds = target.clone() if case == "equal" else (target + 0.05 * torch.randn(20, 30, 3, generator=gen))
+    if case == "nan":
+        preds[3, 4, 1] = float("nan")
+    if case == "float64":
+        preds, target = preds.double(), target.double()
+    got, want = PairPSNR()(preds, target), peak_signal_noise_ratio(preds, target, data_range=1.0)
+    torch.testing.assert_close(got, want, rtol=0, atol=1e-5, equal_nan=True)
+
+
 def test_training_metrics_are_computed_only_at_the_steps_the_trainer_writes(frames):
     from types import SimpleNamespace
 

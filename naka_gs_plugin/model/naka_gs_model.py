@@ -125,7 +125,7 @@ class PairPSNR(torch.nn.Module):
             if squared is None:
                 return peak_signal_noise_ratio(preds, target, data_range=1.0)
             mse = squared / preds.numel()
-            return preds.new_tensor(-10.0 * math.log10(mse) if mse > 0 else math.inf)
+            return preds.new_tensor(math.inf if mse == 0 else -10.0 * math.log10(mse))  # NaN stays NaN
 
 
 def viewmat_from_c2w(c2w: Float[Tensor, "C 3 4"]) -> Float[Tensor, "C 4 4"]:
