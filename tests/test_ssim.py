@@ -42,20 +42,39 @@ def _value_and_grads(module, gt, pred, grad_gt: bool, grad_pred: bool):
     return value.detach(), gt.grad, pred.grad
 
 
+def _assert_matches_reference(got, ref):
+    """(value, grad of gt, grad of pred) in float32 against the float64 reference's: value to 2e-6, gradients to
+    1e-4 of their largest, a gradient exactly where the reference has one."""
+    (value, g_gt, g_pred), (ref_value, ref_gt, ref_pred) = got, ref
+    assert value.dtype == torch.float32
+    torch.testing.assert_close(value.double(), ref_value, rtol=0, atol=2e-6)
+    for grad, ref_grad in ((g_gt, ref_gt), (g_pred, ref_pred)):
+        assert (grad is None) == (ref_grad is None)
+        if ref_grad is not None:
+            torch.testing.assert_close(grad.double(), ref_grad, rtol=0, atol=1e-4 * float(ref_grad.abs().max()))
+
+
+def _at_thread_counts(run):
+    """``run()`` with numba at 1 thread and at its current count (restored after)."""
+    threads = numba.get_num_threads()
+    runs = []
+    try:
+        for count in (1, threads):
+            numba.set_num_threads(count)
+            runs.append(run())
+    finally:
+        numba.set_num_threads(threads)
+    return runs
+
+
 @pytest.mark.parametrize("height, width, n", [(11, 11, 1), (36, 48, 1), (61, 45, 2), (120, 160, 1)])
 @pytest.mark.parametrize("grads", ["pred", "gt", "both"])
 def test_forward_and_backward_match_pytorch_msssim(height, width, n, grads):
     gt, pred = _pair(height, width, n)
     want = dict(grad_gt=grads in ("gt", "both"), grad_pred=grads in ("pred", "both"))
-    value, g_gt, g_pred = _value_and_grads(FUSED, gt, pred, **want)
-    ref_value, ref_gt, ref_pred = _value_and_grads(REFERENCE, gt.double(), pred.double(), **want)
-    assert value.dtype == torch.float32
-    torch.testing.assert_close(value.double(), ref_value, rtol=0, atol=2e-6)
-    for got, ref in ((g_gt, ref_gt), (g_pred, ref_pred)):
-        assert (got is None) == (ref is None)
-        if ref is not None:
-            scale = ref.abs().max()
-            torch.testing.assert_close(got.double(), ref, rtol=0, atol=1e-4 * float(scale))
+    _assert_matches_reference(
+        _value_and_grads(FUSED, gt, pred, **want), _value_and_grads(REFERENCE, gt.double(), pred.double(), **want)
+    )
 
 
 def test_identical_images_score_one_with_zero_gradient():
@@ -67,14 +86,7 @@ def test_identical_images_score_one_with_zero_gradient():
 
 def test_results_do_not_depend_on_the_thread_count():
     gt, pred = _pair(64, 80)
-    threads = numba.get_num_threads()
-    runs = []
-    try:
-        for count in (1, threads):
-            numba.set_num_threads(count)
-            runs.append(_value_and_grads(FUSED, gt, pred, grad_gt=False, grad_pred=True))
-    finally:
-        numba.set_num_threads(threads)
+    runs = _at_thread_counts(lambda: _value_and_grads(FUSED, gt, pred, grad_gt=False, grad_pred=True))
     assert torch.equal(runs[0][0], runs[1][0]) and torch.equal(runs[0][2], runs[1][2])
 
 
@@ -128,28 +140,19 @@ def test_the_l1_ssim_loss_matches_splatfactos_in_value_and_gradient(height, widt
         loss = FUSED.l1_ssim_loss(_nchw(a), _nchw(b), 0.2) if fused else _l1_ssim_reference(a, b, 0.2)
         loss.backward()
         results.append((loss.detach(), a.grad, b.grad))
-    (value, g_gt, g_pred), (ref_value, ref_gt, ref_pred) = results
-    assert value.dtype == torch.float32
-    torch.testing.assert_close(value.double(), ref_value, rtol=0, atol=2e-6)
-    for got, ref in ((g_gt, ref_gt), (g_pred, ref_pred)):
-        assert (got is None) == (ref is None)
-        if ref is not None:
-            torch.testing.assert_close(got.double(), ref, rtol=0, atol=1e-4 * float(ref.abs().max()))
+    _assert_matches_reference(*results)
 
 
 def test_the_l1_ssim_loss_does_not_depend_on_the_thread_count():
     gt, pred = _pair(64, 80)
-    threads = numba.get_num_threads()
-    runs = []
-    try:
-        for count in (1, threads):
-            numba.set_num_threads(count)
-            b = pred.clone().requires_grad_(True)
-            loss = FUSED.l1_ssim_loss(_nchw(gt), _nchw(b), 0.2)
-            loss.backward()
-            runs.append((loss.detach(), b.grad))
-    finally:
-        numba.set_num_threads(threads)
+
+    def run():
+        b = pred.clone().requires_grad_(True)
+        loss = FUSED.l1_ssim_loss(_nchw(gt), _nchw(b), 0.2)
+        loss.backward()
+        return loss.detach(), b.grad
+
+    runs = _at_thread_counts(run)
     assert torch.equal(runs[0][0], runs[1][0]) and torch.equal(runs[0][1], runs[1][1])
 
 
