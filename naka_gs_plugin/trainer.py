@@ -7,6 +7,8 @@
   older one, and fail with one line naming the folder when none is valid.
 - SIGTERM is handled as Ctrl-C; either one before the first training step has finished (while the
   training images load and are enhanced, which can take minutes) stops at once, nothing to save.
+- With ``--vis tensorboard``, the scalars nerfstudio records at every step (iteration time, ETA, rays per second,
+  learning rates) are written at the steps it logs the losses at (:class:`LoggedStepsTensorboardWriter`).
 - One of the plugin's own errors for a problem the user can fix (:data:`~naka_gs_plugin.errors.USER_ERRORS`: a bad scene file,
   image, point source) ends ``ns-train`` with the one line ``naka-gs: <message>`` (exit status 1)
   instead of nerfstudio's traceback; any other exception is a bug and keeps its traceback.
@@ -33,14 +35,18 @@ import threading
 import time
 import zipfile
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from types import FrameType
-from typing import List, Literal, NoReturn, Optional, Sequence, Type
+from typing import List, Literal, NoReturn, Optional, Sequence, Type, Union
+from unittest import mock
 
 import torch
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
+from nerfstudio.utils import writer
 from nerfstudio.utils.decorators import check_main_thread
+from nerfstudio.utils.misc import step_check
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from naka_gs_plugin.errors import user_error_exit
@@ -52,6 +58,11 @@ CHECKPOINT_NAME = re.compile(r"step-(\d+)\.ckpt")
 # first "."]) and take the largest (eval_utils.eval_load_checkpoint). A temporary file left by a kill
 # therefore has to parse, and to step 0, so that it never outranks a real checkpoint.
 PARTIAL_PREFIX = "tmp-0."
+PER_STEP_SCALARS = frozenset(
+    event.value
+    for event in (writer.EventName.ITER_TRAIN_TIME, writer.EventName.ETA, writer.EventName.TRAIN_RAYS_PER_SEC)
+)
+"""Scalars nerfstudio's training loop records at every step, besides each optimizer group's ``learning_rate/<group>``."""
 
 
 def checkpoint_step(path: Path) -> Optional[int]:
@@ -111,6 +122,25 @@ def _fsync_dir(folder: Path) -> None:
             os.close(fd)
 
 
+class LoggedStepsTensorboardWriter(writer.TensorboardWriter):
+    """nerfstudio's tensorboard writer, writing the scalars the training loop records at every step (the iteration
+    time and rays per second, both running averages over the last steps, the ETA and each group's learning rate)
+    only at the steps it logs the losses at: every ``every`` steps from step 0 (``--logging.steps-per-log``). Every
+    other event is written as upstream writes it. Why: nerfstudio pins protobuf <= 3.20.3, which has no compiled
+    module for Python 3.11, so tensorboard serialises each scalar in pure Python: the ten or so of every step were a
+    measurable share of a CPU training step (docs/cpu.md)."""
+
+    def __init__(self, log_dir: Path, every: int) -> None:
+        super().__init__(log_dir=log_dir)
+        self.every = every
+
+    def write_scalar(self, name: str, scalar: Union[float, torch.Tensor], step: int) -> None:
+        per_step = name in PER_STEP_SCALARS or name.startswith("learning_rate/")
+        if per_step and not step_check(step, self.every, run_at_zero=True):
+            return
+        super().write_scalar(name, scalar, step)
+
+
 class NakaGSTrainer(Trainer):
     """nerfstudio's ``Trainer`` with atomic checkpoints, Ctrl-C / SIGTERM saving and corrupt-checkpoint fallback."""
 
@@ -123,8 +153,10 @@ class NakaGSTrainer(Trainer):
         self._done_step: Optional[int] = None  # the last step whose iteration and callbacks finished
         self._previous_handlers: dict = {}  # the signal handlers _on_stop_signal replaced (restored after)
         self._catch_stop_signals()
+        tensorboard = partial(LoggedStepsTensorboardWriter, every=self.config.logging.steps_per_log)
         try:
-            super().setup(test_mode=test_mode)
+            with mock.patch.object(writer, "TensorboardWriter", tensorboard):  # writer.setup_event_writer makes it
+                super().setup(test_mode=test_mode)
         except KeyboardInterrupt:
             self._discard_new_run_folder()
             self._exit_interrupted(f"{self._stop_name} during setup, before any training step; {self._newest_note()}")

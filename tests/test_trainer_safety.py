@@ -26,8 +26,16 @@ import pytest
 import torch
 import yaml
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
+from nerfstudio.utils import writer
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from naka_gs_plugin.trainer import INTERRUPTED_EXIT_CODE, PARTIAL_PREFIX, NakaGSTrainer, checkpoint_step
+from naka_gs_plugin.trainer import (
+    INTERRUPTED_EXIT_CODE,
+    PARTIAL_PREFIX,
+    LoggedStepsTensorboardWriter,
+    NakaGSTrainer,
+    checkpoint_step,
+)
 
 NS_TRAIN = Path(sys.executable).parent / "ns-train"
 STEPS_PER_SAVE = 1000  # far beyond where the test interrupts: any checkpoint is the Ctrl-C one
@@ -36,10 +44,10 @@ STEPS_PER_SAVE = 1000  # far beyond where the test interrupts: any checkpoint is
 # (save_checkpoint), the --load-checkpoint branch (_load_checkpoint), the stop_training checks and the
 # _after_train call (train), and the wait for Ctrl-C after training (_train_complete_viewer).
 UPSTREAM_SHA256 = {
-    "save_checkpoint": "ff574f972b4eeba0b9fe8861549cbcc72986870390b76e1a5fe6a6840085524f",
+    "save_checkpoint": "dd69315ca38c457d64664979e430fd76be50d8d835d1c50e7fe905f35ce3fca6",
     "_load_checkpoint": "5019d2cbbacd0c13f6a6c2fe80548c583e1a39c3ff3cc352831b89cb4a75239a",
     "train": "3494f834a9252d41ff9947bb433bf3080cbc58581af550556a14ea00155d34e2",
-    "_train_complete_viewer": "e364b6d86ddfe53c0e2aba1bd4b7ca03c79400e6a7d141b2185b51c209d89daf",
+    "_train_complete_viewer": "e536f431958844a09e334e70a7e5f22293544ec6666df3724af3600521a52484",
 }
 
 
@@ -99,6 +107,14 @@ def interrupted(toy_scene, tmp_path_factory) -> Interrupted:
     return Interrupted(rc, log_path.read_text(), ckpt_dir)
 
 
+def _upstream_sha256(function) -> str:
+    """sha256 of an upstream function's source; of the function itself where nerfstudio's ``check_main_thread`` or
+    ``check_viewer_enabled`` wraps it (they keep no ``__wrapped__``, and the wrapper's source is the same for all)."""
+    if function.__code__.co_name == "wrapper" and function.__closure__:
+        function = function.__closure__[0].cell_contents
+    return hashlib.sha256(inspect.getsource(function).encode()).hexdigest()
+
+
 def _stub_trainer(tmp_path: Path, **config) -> NakaGSTrainer:
     """A NakaGSTrainer whose pipeline is a tiny module, enough for saving and choosing checkpoints."""
     trainer = TrainerConfig(
@@ -127,7 +143,7 @@ def _flipped_copy(src: Path, dst: Path) -> Path:
 # ------------------------------------------------------------------------------------- upstream pinning
 @pytest.mark.parametrize("name", sorted(UPSTREAM_SHA256))
 def test_upstream_trainer_methods_are_the_pinned_ones(name):
-    digest = hashlib.sha256(inspect.getsource(getattr(Trainer, name)).encode()).hexdigest()
+    digest = _upstream_sha256(getattr(Trainer, name))
     assert digest == UPSTREAM_SHA256[name], (
         f"nerfstudio's Trainer.{name} changed (sha256 {digest}): re-check naka_gs_plugin/trainer.py against it, "
         "then update UPSTREAM_SHA256 in tests/test_trainer_safety.py"
@@ -311,3 +327,32 @@ def test_evaluating_during_training_does_not_change_what_is_trained(toy_scene, t
         trained.append(trainer.pipeline.model.gauss_params)
     for name, param in trained[0].items():
         torch.testing.assert_close(param, trained[1][name], rtol=0, atol=0)
+
+
+# ------------------------------------------------------------------------------------- 5. event writers
+def test_upstream_event_writer_setup_is_the_pinned_one():
+    """NakaGSTrainer.setup swaps nerfstudio's TensorboardWriter for LoggedStepsTensorboardWriter where
+    ``writer.setup_event_writer`` makes it, by its module-level name."""
+    digest = _upstream_sha256(writer.setup_event_writer)
+    assert digest == "e4ebc1768b0fe904ad1a607dab77dfdd18d0915272b3483c422162517a09d7d3", (
+        f"nerfstudio's writer.setup_event_writer changed (sha256 {digest}): re-check NakaGSTrainer.setup against it"
+    )
+
+
+def test_tensorboard_gets_the_per_step_scalars_at_the_logged_steps_only(toy_scene, tmp_path):
+    trainer = _toy_trainer(toy_scene, tmp_path, 25)  # --logging.steps-per-log 10: losses at steps 0, 10 and 20
+    trainer.train()
+    log_dir = trainer.base_dir / trainer.config.logging.relative_log_dir
+    ours = [w for w in writer.EVENT_WRITERS if hasattr(w, "tb_writer") and Path(w.tb_writer.log_dir) == log_dir]
+    (tb,) = ours
+    assert isinstance(tb, LoggedStepsTensorboardWriter)
+    tb.write_scalar("Test PSNR", 20.0, 5)  # not a per-step scalar: written at any step
+    tb.tb_writer.flush()
+    events = EventAccumulator(str(log_dir))
+    events.Reload()
+    steps = {tag: [event.step for event in events.Scalars(tag)] for tag in events.Tags()["scalars"]}
+    assert steps["Train Loss"] == [0, 10, 20]
+    for tag in ("Train Iter (time)", "ETA (time)", "learning_rate/means", "learning_rate/appearance"):
+        assert steps[tag] == [0, 10, 20], tag
+    assert steps["Train Rays / Sec"] == [10, 20]  # upstream records it from step 2 on
+    assert steps["Test PSNR"] == [5]
