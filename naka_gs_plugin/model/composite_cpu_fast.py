@@ -1,12 +1,14 @@
 """Compiled CPU compositing and appearance: numba kernels with a hand-written backward (the fast path of
 :mod:`.composite`, whose :func:`~naka_gs_plugin.model.composite.composite_torch` is the readable reference).
 
-Forward, one pass over the pixels (``prange`` over image rows): ``c = render + (1 - alpha) * background``,
+Forward, one pass over each image row's interleaved RGB values (``prange`` over rows; the background, gain, offset
+and ``1 - alpha`` laid out per value, so the pass runs as vectors): ``c = render + (1 - alpha) * background``,
 ``r = clamp(c, 0, 1)`` and, with an appearance, ``clamp(r * gain + offset, 0, 1)``, in float32 operation for
 operation as the reference (no ``fastmath``: no contraction into FMAs), so the values are the reference's. Backward,
-one pass recomputing ``c`` and ``r``: torch's clamp gradient (passed only strictly inside, ``0 < x < 1``; none at a bound
-or for NaN), the render's and alpha's gradients per pixel, and the gain's and offset's as float64 sums per image row
-added up in row order afterwards: the result does not depend on the thread count. Kernels compile on first use and
+one such pass recomputing ``c`` and ``r``: torch's clamp gradient (passed only strictly inside, ``0 < x < 1``; none at
+a bound or for NaN) and the render's gradient, with the gain's and offset's as float64 sums per image row (in
+:data:`SUM_LANES` partial sums, added up in a fixed order), then per pixel alpha's; the rows' sums are added up in row
+order afterwards: the result depends neither on the thread count nor on the CPU's vector width. Kernels compile on first use and
 are cached on disk by numba (as :mod:`.rasterize_cpu_fast`'s).
 """
 
@@ -39,56 +41,103 @@ def _inside01(v):
     return np.float32(0.0) < v < np.float32(1.0)
 
 
+SUM_LANES = 8
+"""Partial sums per channel of the backward's per-row gain and offset gradients."""
+
+
+@njit(cache=True)
+def _per_slot(values, slots):
+    """(3,) -> (slots,): ``values[q % 3]`` for each slot ``q`` of a row of interleaved RGB."""
+    out = np.empty(slots, values.dtype)
+    for q in range(slots):
+        out[q] = values[q % 3]
+    return out
+
+
+@njit(cache=True, inline="always")
+def _transmittance(alpha_row, slots):
+    """``1 - alpha`` of a row's pixels, once per slot of its interleaved RGB: the per-slot operands let the loops
+    over a row's slots run as vectors, where a loop over its pixels with the three channels inside stays scalar."""
+    out = np.empty(slots, np.float32)
+    one = np.float32(1.0)
+    for j in range(alpha_row.shape[0]):
+        t = one - alpha_row[j]
+        out[3 * j] = t
+        out[3 * j + 1] = t
+        out[3 * j + 2] = t
+    return out
+
+
 @njit(parallel=True, cache=True)
 def _forward_kernel(render, alpha, background, gain, offset, appearance, out):
-    """render, out: (R, W, 3); alpha: (R, W, 1); background, gain, offset: (3,)."""
-    one = np.float32(1.0)
+    """render, out: (R, 3W) rows of interleaved RGB; alpha: (R, W); background, gain, offset: (3,)."""
+    slots = out.shape[1]
+    back, gains, offsets = _per_slot(background, slots), _per_slot(gain, slots), _per_slot(offset, slots)
     for i in prange(out.shape[0]):
-        for j in range(out.shape[1]):
-            transmit = one - alpha[i, j, 0]
-            for k in range(3):
-                v = _clamp01(render[i, j, k] + transmit * background[k])
-                if appearance:
-                    v = _clamp01(v * gain[k] + offset[k])
-                out[i, j, k] = v
+        transmit = _transmittance(alpha[i], slots)
+        row, dst = render[i], out[i]
+        if appearance:
+            for q in range(slots):
+                dst[q] = _clamp01(_clamp01(row[q] + transmit[q] * back[q]) * gains[q] + offsets[q])
+        else:
+            for q in range(slots):
+                dst[q] = _clamp01(row[q] + transmit[q] * back[q])
 
 
 @njit(parallel=True, cache=True)
 def _backward_kernel(
     render, alpha, background, gain, offset, appearance, grad_out, grad_render, grad_alpha, row_gain, row_offset
 ):
-    """grad_out, grad_render: (R, W, 3); grad_alpha: (R, W, 1); row_gain, row_offset: (R, 3) float64 per-row sums
-    of the gain's and the offset's gradients."""
-    one = np.float32(1.0)
+    """render, grad_out, grad_render: (R, 3W); alpha, grad_alpha: (R, W); row_gain, row_offset: (R, 3) float64
+    per-row sums of the gain's and the offset's gradients, in pixel order."""
+    slots = grad_out.shape[1]
+    back, gains, offsets = _per_slot(background, slots), _per_slot(gain, slots), _per_slot(offset, slots)
+    zero = np.float32(0.0)
     for i in prange(grad_out.shape[0]):
-        sum_gain = np.zeros(3, np.float64)
-        sum_offset = np.zeros(3, np.float64)
-        for j in range(grad_out.shape[1]):
-            transmit = one - alpha[i, j, 0]
-            g_alpha = np.float32(0.0)
+        transmit = _transmittance(alpha[i], slots)
+        row, g_out, g_render = render[i], grad_out[i], grad_render[i]
+        if appearance:
+            clamped = np.empty(slots, np.float32)  # clamp(c, 0, 1): what the gain multiplies
+            g_inner = np.empty(slots, np.float32)  # the gradient through the appearance's clamp
+            for q in range(slots):
+                c = row[q] + transmit[q] * back[q]
+                r = _clamp01(c)
+                g = g_out[q] if _inside01(r * gains[q] + offsets[q]) else zero
+                clamped[q] = r
+                g_inner[q] = g
+                g_render[q] = g * gains[q] if _inside01(c) else zero
+            # The row's sums in SUM_LANES partial sums per channel (pixel j in lane j % SUM_LANES), added up in lane
+            # order: independent lanes vectorise where one running sum per channel cannot, in the same order on
+            # every CPU.
+            acc_gain = np.zeros(3 * SUM_LANES, np.float64)
+            acc_offset = np.zeros(3 * SUM_LANES, np.float64)
+            block = 3 * SUM_LANES
+            for start in range(0, slots, block):
+                for m in range(min(block, slots - start)):
+                    g = g_inner[start + m]
+                    acc_gain[m] += g * clamped[start + m]
+                    acc_offset[m] += g
             for k in range(3):
-                c = render[i, j, k] + transmit * background[k]
-                g = grad_out[i, j, k]
-                if appearance:
-                    r = _clamp01(c)
-                    if not _inside01(r * gain[k] + offset[k]):
-                        g = np.float32(0.0)
-                    sum_gain[k] += g * r
-                    sum_offset[k] += g
-                    g = g * gain[k]
-                if not _inside01(c):
-                    g = np.float32(0.0)
-                grad_render[i, j, k] = g
-                g_alpha -= g * background[k]
-            grad_alpha[i, j, 0] = g_alpha
-        for k in range(3):
-            row_gain[i, k] = sum_gain[k]
-            row_offset[i, k] = sum_offset[k]
+                sum_gain = sum_offset = 0.0
+                for lane in range(SUM_LANES):
+                    sum_gain += acc_gain[3 * lane + k]
+                    sum_offset += acc_offset[3 * lane + k]
+                row_gain[i, k] = sum_gain
+                row_offset[i, k] = sum_offset
+        else:
+            for q in range(slots):
+                c = row[q] + transmit[q] * back[q]
+                g_render[q] = g_out[q] if _inside01(c) else zero
+        for j in range(alpha.shape[1]):
+            g_alpha = zero
+            for k in range(3):
+                g_alpha -= g_render[3 * j + k] * background[k]
+            grad_alpha[i, j] = g_alpha
 
 
 def _rows(t: Tensor) -> np.ndarray:
-    """(..., H, W, C) -> (rows, W, C) NumPy view (a copy only if the leading dimensions cannot be merged)."""
-    return t.detach().reshape(-1, t.shape[-2], t.shape[-1]).numpy()
+    """(..., H, W, C) -> (rows, W * C) NumPy view of contiguous rows (a copy where ``t``'s are not)."""
+    return t.detach().contiguous().reshape(-1, t.shape[-2] * t.shape[-1]).numpy()
 
 
 class _Composite(torch.autograd.Function):
