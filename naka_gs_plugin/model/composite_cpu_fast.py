@@ -6,10 +6,9 @@ and ``1 - alpha`` laid out per value, so the pass runs as vectors): ``c = render
 ``r = clamp(c, 0, 1)`` and, with an appearance, ``clamp(r * gain + offset, 0, 1)``, in float32 operation for
 operation as the reference (no ``fastmath``: no contraction into FMAs), so the values are the reference's. Backward,
 one such pass recomputing ``c`` and ``r``: torch's clamp gradient (passed only strictly inside, ``0 < x < 1``; none at
-a bound or for NaN) and the render's gradient, with the gain's and offset's as float64 sums per image row (in
-:data:`SUM_LANES` partial sums, added up in a fixed order), then per pixel alpha's; the rows' sums are added up in row
-order afterwards: the result depends neither on the thread count nor on the CPU's vector width. Kernels compile on first use and
-are cached on disk by numba (as :mod:`.rasterize_cpu_fast`'s).
+a bound or for NaN) and the render's gradient; then per pixel alpha's, and the gain's and offset's as float64 sums
+per image row in pixel order, added up in row order afterwards: the result does not depend on the thread count.
+Kernels compile on first use and are cached on disk by numba (as :mod:`.rasterize_cpu_fast`'s).
 """
 
 from __future__ import annotations
@@ -39,10 +38,6 @@ def _clamp01(v):
 def _inside01(v):
     """Where torch's clamp passes the gradient: strictly inside, 0 < v < 1 (at a bound it passes none; NaN none)."""
     return np.float32(0.0) < v < np.float32(1.0)
-
-
-SUM_LANES = 8
-"""Partial sums per channel of the backward's per-row gain and offset gradients."""
 
 
 @njit(cache=True)
@@ -106,24 +101,16 @@ def _backward_kernel(
                 clamped[q] = r
                 g_inner[q] = g
                 g_render[q] = g * gains[q] if _inside01(c) else zero
-            # The row's sums in SUM_LANES partial sums per channel (pixel j in lane j % SUM_LANES), added up in lane
-            # order: independent lanes vectorise where one running sum per channel cannot, in the same order on
-            # every CPU.
-            acc_gain = np.zeros(3 * SUM_LANES, np.float64)
-            acc_offset = np.zeros(3 * SUM_LANES, np.float64)
-            block = 3 * SUM_LANES
-            for start in range(0, slots, block):
-                for m in range(min(block, slots - start)):
-                    g = g_inner[start + m]
-                    acc_gain[m] += g * clamped[start + m]
-                    acc_offset[m] += g
+            sum_gain = np.zeros(3, np.float64)
+            sum_offset = np.zeros(3, np.float64)
+            for j in range(alpha.shape[1]):
+                for k in range(3):
+                    g = g_inner[3 * j + k]
+                    sum_gain[k] += g * clamped[3 * j + k]
+                    sum_offset[k] += g
             for k in range(3):
-                sum_gain = sum_offset = 0.0
-                for lane in range(SUM_LANES):
-                    sum_gain += acc_gain[3 * lane + k]
-                    sum_offset += acc_offset[3 * lane + k]
-                row_gain[i, k] = sum_gain
-                row_offset[i, k] = sum_offset
+                row_gain[i, k] = sum_gain[k]
+                row_offset[i, k] = sum_offset[k]
         else:
             for q in range(slots):
                 c = row[q] + transmit[q] * back[q]
