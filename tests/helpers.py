@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import hashlib
+import inspect
 from pathlib import Path
 from typing import Callable, Dict, Optional, Sequence
 
@@ -17,6 +19,15 @@ SHARED_REFERENCE = Path(__file__).resolve().parents[2] / "shared" / "reference"
 TINY_VIEWS = {"n_train": 3, "n_test": 1, "width": 48, "height": 36, "spacing": 0.3}
 """A simulator scene's views small enough for unit tests."""
 F32, F64 = torch.float32, torch.float64
+
+
+def upstream_sha256(function) -> str:
+    """sha256 of an upstream function's source, for the tests that pin the upstream code our hooks rely on; of the
+    function itself where nerfstudio's ``check_main_thread`` or ``check_viewer_enabled`` wraps it (they keep no
+    ``__wrapped__``, and the wrapper's source is the same for every function they wrap)."""
+    if function.__code__.co_name == "wrapper" and function.__closure__:
+        function = function.__closure__[0].cell_contents
+    return hashlib.sha256(inspect.getsource(function).encode()).hexdigest()
 
 
 def train_steps(

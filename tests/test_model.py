@@ -1,7 +1,5 @@
 """NakaGSModel in-process on CPU: backend choice, seeding, LPIPS, densification, NaN safety."""
 
-import hashlib
-import inspect
 import math
 
 import pytest
@@ -14,7 +12,7 @@ from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig
 from naka_gs_plugin.model.appearance import ViewAppearance
 from naka_gs_plugin.model.lpips import LPIPSWeightsError
 from naka_gs_plugin.model.naka_gs_model import NakaGSModelConfig, NonFiniteTrainingError, all_finite, viewmat_from_c2w
-from tests.helpers import train_steps
+from tests.helpers import train_steps, upstream_sha256
 
 
 def _model(n=400, seed_rgb=True, **overrides):
@@ -185,7 +183,7 @@ SPLATFACTO_GET_OUTPUTS_SHA256 = "ebe38a3708f07ea52b6eead101870cffdad9851c0f9d9cb
 
 
 def test_upstream_get_outputs_is_the_pinned_one():
-    digest = hashlib.sha256(inspect.getsource(SplatfactoModel.get_outputs).encode()).hexdigest()
+    digest = upstream_sha256(SplatfactoModel.get_outputs)
     assert digest == SPLATFACTO_GET_OUTPUTS_SHA256, (
         f"nerfstudio's SplatfactoModel.get_outputs changed (sha256 {digest}): port the change into "
         "NakaGSModel.get_outputs (naka_gs_plugin/model/naka_gs_model.py), then update the pin in tests/test_model.py"

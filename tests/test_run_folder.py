@@ -35,6 +35,7 @@ from naka_gs_plugin.config import naka_gs_method
 from naka_gs_plugin.enhance.stages import NakaStage
 from naka_gs_plugin.errors import USER_ERRORS, user_error_exit
 from naka_gs_plugin.trainer import INTERRUPTED_EXIT_CODE, NakaGSTrainer, NakaGSTrainerConfig
+from tests.helpers import upstream_sha256
 
 BIN = Path(sys.executable).parent
 
@@ -125,7 +126,7 @@ def _copy_run(run: Path, dst: Path) -> Path:
 @pytest.mark.parametrize("name", sorted(UPSTREAM_SHA256))
 def test_upstream_code_the_hooks_rely_on_is_the_pinned_one(name):
     func, expected = UPSTREAM_SHA256[name]
-    digest = hashlib.sha256(inspect.getsource(func).encode()).hexdigest()
+    digest = upstream_sha256(func)
     assert digest == expected, (
         f"nerfstudio's {name} changed (sha256 {digest}): re-check NakaGSTrainerConfig in naka_gs_plugin/trainer.py "
         "against it, then update UPSTREAM_SHA256 in tests/test_run_folder.py"

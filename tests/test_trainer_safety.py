@@ -9,8 +9,6 @@ runs in-process on stub trainers.
 from __future__ import annotations
 
 import copy
-import hashlib
-import inspect
 import os
 import re
 import shutil
@@ -36,6 +34,7 @@ from naka_gs_plugin.trainer import (
     NakaGSTrainer,
     checkpoint_step,
 )
+from tests.helpers import upstream_sha256
 
 NS_TRAIN = Path(sys.executable).parent / "ns-train"
 STEPS_PER_SAVE = 1000  # far beyond where the test interrupts: any checkpoint is the Ctrl-C one
@@ -107,14 +106,6 @@ def interrupted(toy_scene, tmp_path_factory) -> Interrupted:
     return Interrupted(rc, log_path.read_text(), ckpt_dir)
 
 
-def _upstream_sha256(function) -> str:
-    """sha256 of an upstream function's source; of the function itself where nerfstudio's ``check_main_thread`` or
-    ``check_viewer_enabled`` wraps it (they keep no ``__wrapped__``, and the wrapper's source is the same for all)."""
-    if function.__code__.co_name == "wrapper" and function.__closure__:
-        function = function.__closure__[0].cell_contents
-    return hashlib.sha256(inspect.getsource(function).encode()).hexdigest()
-
-
 def _stub_trainer(tmp_path: Path, **config) -> NakaGSTrainer:
     """A NakaGSTrainer whose pipeline is a tiny module, enough for saving and choosing checkpoints."""
     trainer = TrainerConfig(
@@ -143,7 +134,7 @@ def _flipped_copy(src: Path, dst: Path) -> Path:
 # ------------------------------------------------------------------------------------- upstream pinning
 @pytest.mark.parametrize("name", sorted(UPSTREAM_SHA256))
 def test_upstream_trainer_methods_are_the_pinned_ones(name):
-    digest = _upstream_sha256(getattr(Trainer, name))
+    digest = upstream_sha256(getattr(Trainer, name))
     assert digest == UPSTREAM_SHA256[name], (
         f"nerfstudio's Trainer.{name} changed (sha256 {digest}): re-check naka_gs_plugin/trainer.py against it, "
         "then update UPSTREAM_SHA256 in tests/test_trainer_safety.py"
@@ -333,7 +324,7 @@ def test_evaluating_during_training_does_not_change_what_is_trained(toy_scene, t
 def test_upstream_event_writer_setup_is_the_pinned_one():
     """NakaGSTrainer.setup swaps nerfstudio's TensorboardWriter for LoggedStepsTensorboardWriter where
     ``writer.setup_event_writer`` makes it, by its module-level name."""
-    digest = _upstream_sha256(writer.setup_event_writer)
+    digest = upstream_sha256(writer.setup_event_writer)
     assert digest == "e4ebc1768b0fe904ad1a607dab77dfdd18d0915272b3483c422162517a09d7d3", (
         f"nerfstudio's writer.setup_event_writer changed (sha256 {digest}): re-check NakaGSTrainer.setup against it"
     )
