@@ -130,10 +130,11 @@ step_train() {
     done
     for i in "${!pids[@]}"; do wait "${pids[$i]}" || { echo "${ids[$i]}: exit $?"; rc=1; }; done
     grep -h "step [0-9]*: PSNR" "$OUT/$name"/*/logs/*/*/log.txt
-    # Results, logs and configs only (a run stopped mid-save leaves a checkpoint being written), and at
-    # most 8 files come back from such a machine: everything else goes.
-    tar czf "$OUT/$name.tgz" --warning=no-file-changed --exclude '*.ckpt' --exclude 'events.out.*' --exclude cache \
-      -C "$OUT" "$name" $(cd "$OUT" && ls "$name"-*.log)
+    # Results, logs and configs only: a run stopped mid-save leaves a checkpoint being written, the runs'
+    # other files (enhanced images, seed points) took the archive past the 16 MB a file may have to come
+    # back from such a machine, and at most 8 files come back: everything else goes.
+    (cd "$OUT" && find "$name" -type f \( -name '*.log' -o -name '*.txt' -o -name '*.json' -o -name '*.yml' -o -name '*.md' \) \
+      -size -2M -print0 | tar czf "$name.tgz" --warning=no-file-changed --null -T - "$name"-*.log)
     rm -rf "${OUT:?}/$name" "$OUT/$name"-*.log
     return $rc
   fi
