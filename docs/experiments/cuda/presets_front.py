@@ -20,6 +20,13 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+LABELS = {
+    "naka-gs": "splatfacto's schedule (the GPU naka-gs stops it at 7k)",
+    "big": "splatfacto's schedule, splatfacto-big's densification",
+    "naka-gs-fast": "the CPU's 7k of 10k (the GPU naka-gs-fast until 2026-12-04)",
+}
+"""The families of scripts/gpu/lom-big.yaml as run on 2026-12-04."""
+
 LINE = re.compile(
     r"\[naka-gs bench\] (\w+)/([\w-]+) step (\d+): PSNR ([\d.]+) dB, SSIM ([\d.]+), LPIPS ([\d.]+), "
     r"(\d+) Gaussians, ([\d.]+) s training"
@@ -66,14 +73,14 @@ def main(archive: Path, figure: Path | None) -> None:
     for family, rows in means.items():
         t = [r[1][4] for r in rows]
         for ax, k in zip(axes, (0, 2)):
-            ax.plot(t, [r[1][k] for r in rows], marker="o", ms=3, label=family)
+            ax.plot(t, [r[1][k] for r in rows], marker="o", ms=3, label=LABELS.get(family, family))
             for step, r in rows:
                 ax.annotate(f"{step // 1000}k", (r[4], r[k]), fontsize=6, xytext=(2, 2), textcoords="offset points")
     for ax, name in zip(axes, ("test PSNR (dB), mean", "test LPIPS, mean (lower is better)")):
         ax.set_xlabel("training seconds (runs sharing one GPU)")
         ax.set_ylabel(name)
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
+        ax.legend(fontsize=7)
     fig.suptitle(f"naka-gs presets on a GPU: LOM {', '.join(sorted(next(iter(found.values()))))}", fontsize=9)
     fig.tight_layout()
     fig.savefig(figure, dpi=110)
