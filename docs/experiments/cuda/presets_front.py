@@ -1,4 +1,4 @@
-"""The presets' front on a GPU (docs/cuda.md, "A bigger preset for a GPU"), from the milestone lines of
+"""The presets' front on a GPU (docs/cuda.md, "The presets on a GPU"), from the milestone lines of
 `GRID=scripts/gpu/lom-big.yaml TRAIN_PARALLEL=1 bash scripts/gpu/run.sh train` (its train.log, or lom-big.tgz):
 runs stopped by the lease write no results.json, their log lines are the record.
 
