@@ -11,10 +11,12 @@ USER_ERRORS = frozenset(
     {
         "naka_gs_plugin.data.images.ImageReadError",
         "naka_gs_plugin.data.lowlight_dataparser.LowLightDataError",
+        "naka_gs_plugin.data.pairs.PairsError",
         "naka_gs_plugin.data.safe_io.UnsafeOutputError",
         "naka_gs_plugin.enhance.checkpoint.CorrectionWeightsError",
         "naka_gs_plugin.enhance.checkpoint.CorrectionWeightsNotFoundError",
         "naka_gs_plugin.enhance.pipeline.EnhanceOptionError",
+        "naka_gs_plugin.enhance.profile.CameraProfileError",
         "naka_gs_plugin.model.lpips.LPIPSWeightsError",
         "naka_gs_plugin.model.naka_gs_model.NonFiniteTrainingError",
         "naka_gs_plugin.model.naka_gs_model.RasterizerOptionError",

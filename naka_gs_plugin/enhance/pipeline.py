@@ -40,10 +40,12 @@ from naka_gs_plugin.enhance.correction import (
     resolve_mode,
 )
 from naka_gs_plugin.enhance.exposure import METERED_TARGET
+from naka_gs_plugin.enhance.profile import chain_key
 from naka_gs_plugin.enhance.stages import (
     CHAIN,
     CorrectionStage,
     ExposureStage,
+    ProfileStage,
     SceneStage,
     ViewStage,
     to_float01,
@@ -64,7 +66,13 @@ RETIRED: Dict[str, Tuple[Any, str]] = {
 }
 """Options removed from :class:`EnhanceConfig`: the value that behaves as today, and what runs instead
 (each measurement: docs/real-scenes.md, Levers)."""
-LEGACY_DEFAULTS = {"chroma": "network", "exposure_metering": "mean", "exposure_curve": "power", "tone": "network"}
+LEGACY_DEFAULTS = {
+    "chroma": "network",
+    "exposure_metering": "mean",
+    "exposure_curve": "power",
+    "tone": "network",
+    "profile": None,
+}
 """What runs saved before an option existed did (their ``config.yml`` lacks the key): a live option loads with it,
 a retired one is checked against what runs now."""
 CORRECTION_OPTION = "--pipeline.datamanager.enhance.correction"
@@ -103,11 +111,16 @@ class EnhanceConfig(InstantiateConfig):
     it, in linear light, than the view's median enhancement gain (:mod:`naka_gs_plugin.enhance.tone`: the network
     lifts black, most on captures far darker than LOL and LOM, such as RealX3D); ``network``: the tone of the Naka
     response and the correction network as they come."""
-    exposure: Union[float, Literal["none"]] = METERED_TARGET
+    profile: Optional[Path] = None
+    """A camera profile from ``naka-gs-calibrate`` (a .json file): the enhanced views as the camera that took the
+    calibration pairs renders normal light (its colour and tone at this darkness;
+    :mod:`naka_gs_plugin.enhance.profile`). Applied after capture tone; its content hash is in the cache key."""
+    exposure: Union[float, Literal["auto", "none"]] = "auto"
     """Scene exposure after the correction network (:mod:`naka_gs_plugin.enhance.exposure`): when the
     enhanced views meter below this sRGB level (mean luminance in linear light, as a camera meters), one
-    linear-light gain shared by every view lifts them there (default 0.505, the metered level of
-    normal-light photos); ``none`` keeps the network's exposure. Applied after the cache."""
+    linear-light gain shared by every view lifts them there; ``auto``: 0.505 (the metered level of normal-light
+    photos) without a profile, and no lift with one (the profile carries its camera's normal exposure);
+    ``none`` keeps the chain's exposure. Applied after the cache."""
     correction_mode: ModeName = DEFAULT_MODE
     """Correction inference mode (``naka_gs_plugin.enhance.correction.MODES``): ``auto`` picks the fastest
     one that keeps the quality bar: when training on CUDA ``exact`` on that GPU, else on this CPU ``lean``
@@ -129,6 +142,12 @@ class EnhanceConfig(InstantiateConfig):
                         markup=False,
                     )
         self.__dict__.update(state)
+
+    def exposure_target(self) -> Optional[float]:
+        """The metered level the exposure step lifts to, or None when it is off (``none``; ``auto`` with a profile)."""
+        if self.exposure == "auto":
+            return METERED_TARGET if self.profile is None else None
+        return None if self.exposure == "none" else float(self.exposure)
 
     def correction_path(self) -> Optional[Path]:
         """The checkpoint file of ``correction``, or ``None`` for ``none``."""
@@ -154,9 +173,17 @@ class Enhancer:
             raise EnhanceOptionError(
                 f"--pipeline.datamanager.enhance.sigma must be > 0 or auto, got {config.sigma!r} (default 0.05)"
             )
-        if config.exposure != "none" and not (isinstance(config.exposure, (int, float)) and 0 < config.exposure < 1):
+        if config.exposure not in ("auto", "none") and not (
+            isinstance(config.exposure, (int, float)) and 0 < config.exposure < 1
+        ):
             raise EnhanceOptionError(
-                f"--pipeline.datamanager.enhance.exposure must be in (0, 1) or none, got {config.exposure!r} (default {METERED_TARGET})"
+                f"--pipeline.datamanager.enhance.exposure must be in (0, 1), auto or none, got {config.exposure!r} "
+                f"(default auto: {METERED_TARGET} without a profile)"
+            )
+        if config.profile is not None and config.method != "naka":
+            raise EnhanceOptionError(
+                f"--pipeline.datamanager.enhance.profile {config.profile} applies to the naka enhancement, not method "
+                f"{config.method}: drop the profile or use --pipeline.datamanager.enhance.method naka"
             )
         if not (isinstance(config.chroma_blur, (int, float)) and config.chroma_blur > 0):
             raise EnhanceOptionError(
@@ -194,6 +221,14 @@ class Enhancer:
         self.correction: Optional[CorrectionStage] = next(
             (stage for stage in self.view_stages if isinstance(stage, CorrectionStage)), None
         )
+        profile = next((stage for stage in self.view_stages if isinstance(stage, ProfileStage)), None)
+        if profile is not None and profile.profile().chain != chain_key(self.view_stages):
+            CONSOLE.log(
+                f"[naka-gs] warning: camera profile {profile.path} was fitted after another enhancement chain "
+                f"({profile.profile().chain}); its colours may be off -- calibrate again with these "
+                "--enhance options",
+                markup=False,
+            )
 
     def _correction_fix(self) -> str:
         """What to pass instead of correction weights that do not load."""

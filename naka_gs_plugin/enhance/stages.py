@@ -1,7 +1,7 @@
 """The enhancement as a chain of stages, each a dataclass whose fields are everything that changes its output.
 
 :class:`naka_gs_plugin.enhance.pipeline.Enhancer` runs the chain: per view the Naka response, the
-correction network, capture chroma and capture tone, then the cache, then the stages that look at the whole
+correction network, capture chroma, capture tone and a camera profile when one is given, then the cache, then the stages that look at the whole
 scene's enhanced views (exposure). A :class:`ViewStage` runs per view before the cache, a
 :class:`SceneStage` on the cached views of the whole scene. The cache key is :meth:`Stage.key` of every cached
 stage, derived from the stage's fields, so an option a stage reads is in the key by construction;
@@ -28,6 +28,7 @@ from naka_gs_plugin.enhance.chroma import capture_chroma
 from naka_gs_plugin.enhance.correction import CorrectionRunner, file_digest, load_correction
 from naka_gs_plugin.enhance.exposure import apply_gain, lift_gain
 from naka_gs_plugin.enhance.naka import linear_stretch, naka_rushton, stretch_stats
+from naka_gs_plugin.enhance.profile import CameraProfile, apply_profile, file_sha1
 from naka_gs_plugin.enhance.tone import DEFAULT_BLUR as TONE_BLUR
 from naka_gs_plugin.enhance.tone import FLOOR_CODES as TONE_FLOOR
 from naka_gs_plugin.enhance.tone import capture_tone
@@ -219,6 +220,39 @@ class CaptureToneStage(ViewStage):
 
 
 @dataclass
+class ProfileStage(ViewStage):
+    """A camera profile from ``naka-gs-calibrate`` (:mod:`naka_gs_plugin.enhance.profile`): the chain's output as
+    that camera renders it at normal light. Keyed by the profile file's content hash, not its path."""
+
+    name: ClassVar[str] = "profile"
+    profile_sha1: str = ""
+    path: Path = runtime(default=Path())
+    _profile: Optional[CameraProfile] = runtime(default=None, init=False)
+
+    @classmethod
+    def build(cls, config: Any, enhancer: Any) -> Optional["ProfileStage"]:
+        if config.method != "naka" or config.profile is None:
+            return None
+        path = Path(config.profile)
+        CameraProfile.load(path, PROFILE_OPTION)  # a bad file fails here, before any image is read
+        return cls(profile_sha1=file_sha1(path), path=path)
+
+    def profile(self) -> CameraProfile:
+        if self._profile is None:
+            self._profile = CameraProfile.load(self.path, PROFILE_OPTION)
+        return self._profile
+
+    def apply(self, image: Float[Tensor, "H W 3"], low: Float[Tensor, "H W 3"]) -> Float[Tensor, "H W 3"]:
+        return apply_profile(image, self.profile())
+
+    def describe(self) -> str:
+        return f"camera profile {self.path.name}"
+
+
+PROFILE_OPTION = "--pipeline.datamanager.enhance.profile"
+
+
+@dataclass
 class ExposureStage(SceneStage):
     """One linear-light gain shared by every view lifts the scene's metered level to ``target`` when it is
     below it (:mod:`naka_gs_plugin.enhance.exposure`); after the cache, as it needs the whole scene."""
@@ -230,7 +264,8 @@ class ExposureStage(SceneStage):
 
     @classmethod
     def build(cls, config: Any, enhancer: Any) -> Optional["ExposureStage"]:
-        return cls(target=config.exposure) if config.method == "naka" and config.exposure != "none" else None
+        target = config.exposure_target()
+        return cls(target=target) if config.method == "naka" and target is not None else None
 
     def apply_all(self, images: List[Float[Tensor, "H W 3"]]) -> List[Float[Tensor, "H W 3"]]:
         """Every view of the scene, lifted by one gain (unchanged when the scene meters at ``target`` or above)."""
@@ -238,6 +273,13 @@ class ExposureStage(SceneStage):
         return images if self.value == 1.0 else apply_gain(images, self.value)
 
 
-CHAIN: Tuple[Type[Stage], ...] = (NakaStage, CorrectionStage, CaptureChromaStage, CaptureToneStage, ExposureStage)
+CHAIN: Tuple[Type[Stage], ...] = (
+    NakaStage,
+    CorrectionStage,
+    CaptureChromaStage,
+    CaptureToneStage,
+    ProfileStage,
+    ExposureStage,
+)
 """The enhancement, in order: each stage's :meth:`Stage.build` decides from the config whether it runs. A new
 stage is a class here (with ``build``) plus the config field it reads."""
