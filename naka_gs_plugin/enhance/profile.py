@@ -7,8 +7,8 @@ capture chroma and capture tone) onto the camera's normal-light rendering of the
    JPEG loses its red difference in the shadows, not in the highlights);
 2. a 3x3 colour matrix in linear light (the cross-channel part of the cast), then the sRGB encoding.
 
-It is fitted robustly (Charbonnier loss in sRGB, which weighs shadows as PSNR does) on area-downscaled pairs,
-in seconds, by :func:`fit_profile`; :func:`apply_profile` is the view stage's maths. A profile is a small JSON file
+It is fitted robustly (a Huber loss in sRGB: squared errors, as PSNR weighs them, up to :data:`HUBER_DELTA`; what a
+pair does not share beyond it, a moved object or a lamp, pulls no harder) on area-downscaled pairs, in seconds, by :func:`fit_profile`; :func:`apply_profile` is the view stage's maths. A profile is a small JSON file
 (``naka-gs-calibrate`` writes it) that also records the chain it was fitted after and the pairs' exposure ratios.
 """
 
@@ -29,9 +29,13 @@ PROFILE_FORMAT = "naka-gs-camera-profile"
 PROFILE_VERSION = 1
 KNOTS = 17
 """Curve knots, evenly spaced in the enhanced sRGB value: a step of 1/16 (16 codes of 255)."""
-FIT_LONG_SIDE = 256
+FIT_LONG_SIDE = 512
 """Pairs are area-downscaled to this longer side before fitting: it averages the dark frame's noise and a pair's
 sub-pixel misalignment, and keeps the fit to seconds."""
+
+
+HUBER_DELTA = 0.1
+"""Residuals beyond this (sRGB, 25 codes) count linearly in the fit."""
 
 
 class CameraProfileError(ValueError):
@@ -163,11 +167,13 @@ def fit_profile(
     enhanced: Sequence[Float[Tensor, "H W 3"]],
     references: Sequence[Float[Tensor, "H W 3"]],
     steps: int = 600,
+    batch: int = 4096,
     seed: int = 0,
 ) -> tuple[Float[Tensor, "3 K"], Float[Tensor, "3 3"], Dict[str, Any]]:
     """Fit the curves and matrix taking each ``enhanced`` view (sRGB [0, 1]) to its ``references`` photo (same
-    size, aligned). Charbonnier loss in sRGB on area-downscaled pixels; curves kept monotone by construction
-    (cumulative softplus steps). Returns ``(curves, matrix, stats)``."""
+    size, aligned). Huber loss in sRGB on area-downscaled pixels, Adam on ``steps`` random batches of
+    ``batch`` pixels (cosine learning rate); curves kept monotone by construction (cumulative softplus steps).
+    Returns ``(curves, matrix, stats)``."""
     gen = torch.Generator().manual_seed(seed)
     xs, ys = [], []
     for e, r in zip(enhanced, references):
@@ -187,17 +193,17 @@ def fit_profile(
     matrix = torch.eye(3).requires_grad_(True)
     opt = torch.optim.Adam([first, inc, matrix], lr=0.02)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps)
-    batch = min(len(x), 65536)
+    batch = min(len(x), batch)
     for _ in range(steps):
         idx = torch.randint(len(x), (batch,), generator=gen)
         curves = torch.cumsum(torch.cat([torch.nn.functional.softplus(first), torch.nn.functional.softplus(inc)], 1), 1)
         out = apply_maps(x[idx], curves, matrix)
-        loss = torch.sqrt((out - y[idx]) ** 2 + 1e-6).mean()
+        loss = torch.nn.functional.huber_loss(out, y[idx], delta=HUBER_DELTA)
         opt.zero_grad()
         loss.backward()
         opt.step()
         sched.step()
     with torch.no_grad():
         curves = torch.cumsum(torch.cat([torch.nn.functional.softplus(first), torch.nn.functional.softplus(inc)], 1), 1)
-        final = float(torch.sqrt((apply_maps(x, curves, matrix) - y) ** 2 + 1e-6).mean())
+        final = float(torch.nn.functional.huber_loss(apply_maps(x, curves, matrix), y, delta=HUBER_DELTA))
     return curves.detach(), matrix.detach(), {"samples": int(len(x)), "steps": steps, "loss": final}

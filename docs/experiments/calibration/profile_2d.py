@@ -23,6 +23,7 @@ from naka_gs_plugin.model.lpips import LazyLPIPS
 torch.manual_seed(0)
 data = torch.load("outputs/calibration/bluehawaii_stages.pt")
 f = {k: [x.float() for x in v] for k, v in data.items() if k != "names"}
+BATCH = int(next((a.split("=")[1] for a in sys.argv if a.startswith("batch=")), 4096))
 held = list(range(2, 30, 3))
 pool = [i for i in range(30) if i not in held]
 lpips = LazyLPIPS()
@@ -58,7 +59,7 @@ show("today's default (no profile)", score([exposed[i] for i in held], held))
 for n in counts:
     use = [pool[int(round(j))] for j in np.linspace(0, len(pool) - 1, n)]
     t = time.perf_counter()
-    curves, matrix, stats = fit_profile([f[after][i] for i in use], [f["ref"][i] for i in use])
+    curves, matrix, stats = fit_profile([f[after][i] for i in use], [f["ref"][i] for i in use], batch=BATCH)
     sec = time.perf_counter() - t
     prof = CameraProfile(curves=curves.tolist(), matrix=matrix.tolist())
     with torch.no_grad():
