@@ -67,7 +67,9 @@ def test_the_fit_recovers_a_known_camera_on_views_it_never_saw():
     g = torch.Generator().manual_seed(0)
     true_curves = (srgb_to_linear(KNOT_X) * torch.tensor([1.2, 0.9, 0.7])).t() ** 1.1
     true_matrix = torch.tensor([[1.1, -0.05, -0.05], [-0.1, 1.0, 0.1], [0.0, -0.1, 1.1]])
-    images = [torch.from_numpy(_scene(i)).float() * torch.rand(1, 1, 3, generator=g).add(0.5).clamp(max=1) for i in range(6)]
+    images = [
+        torch.from_numpy(_scene(i)).float() * torch.rand(1, 1, 3, generator=g).add(0.5).clamp(max=1) for i in range(6)
+    ]
     refs = [apply_maps(x, true_curves, true_matrix) for x in images]
     curves, matrix, stats = fit_profile(images[:4], refs[:4], steps=400)
     for x, ref in zip(images[4:], refs[4:]):
