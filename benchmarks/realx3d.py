@@ -67,6 +67,24 @@ def render_test_views(config_yml: Path, out: Path) -> int:
     return len(names)
 
 
+class RealX3DSpecError(ValueError):
+    """A benchmark file that cannot be run; one line naming the file and the fix."""
+
+
+def load_spec(path: Path) -> Dict[str, Any]:
+    """The benchmark file: ``calibrate`` (the pairs), ``scenes`` (name -> lowlight-data scene) and optional
+    ``settings`` (``ns-train`` options without their dashes); a missing key or folder is one line."""
+    try:
+        spec = yaml.safe_load(Path(path).read_text()) or {}
+    except (OSError, yaml.YAMLError) as err:
+        raise RealX3DSpecError(f"{path}: cannot read it ({err}) -- pass benchmarks/configs/realx3d.yaml") from None
+    if not isinstance(spec, dict) or "calibrate" not in spec or not isinstance(spec.get("scenes"), dict):
+        raise RealX3DSpecError(f"{path}: needs 'calibrate: PAIRS' and 'scenes: {{name: scene folder}}'")
+    if not isinstance(spec.setdefault("settings", {}), dict):
+        raise RealX3DSpecError(f"{path}: 'settings' must map ns-train options to values")
+    return spec
+
+
 @dataclass
 class RealX3D:
     """Calibrate on the calibration pairs, train every scene with the profile, render the challenge's layout."""
@@ -77,7 +95,7 @@ class RealX3D:
     """Only these scenes (names as in the file)."""
 
     def main(self) -> Dict[str, Any]:
-        spec = yaml.safe_load(self.config.read_text())
+        spec = load_spec(self.config)
         self.out.mkdir(parents=True, exist_ok=True)
         results_file = self.out / "results.json"
         results = json.loads(results_file.read_text()) if results_file.exists() else {"scenes": {}}
@@ -87,7 +105,7 @@ class RealX3D:
             wall, rss = timed(cmd, None, self.out / "calibrate.log")
             results["calibration"] = {"pairs": spec["calibrate"], "wall_s": wall, "peak_rss_gb": round(rss, 2)}
             _log(f"calibrated on {spec['calibrate']} in {wall:.0f} s (peak {rss:.1f} GB): {profile}")
-        settings = [str(a) for key, value in spec.get("settings", {}).items() for a in (f"--{key}", value)]
+        settings = [str(a) for key, value in spec["settings"].items() for a in (f"--{key}", value)]
         for name, scene in spec["scenes"].items():
             if self.only and name not in self.only:
                 continue

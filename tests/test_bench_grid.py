@@ -126,7 +126,7 @@ def test_pareto_front_keeps_only_undominated_points():
 
 def test_every_shipped_grid_loads():
     """Each benchmarks/configs/*.yaml names settings that exist (the LOM protocol's per-scene weights too)."""
-    grids = sorted(GRIDS.glob("*.yaml"))
+    grids = sorted(g for g in GRIDS.glob("*.yaml") if g.name != "realx3d.yaml")  # benchmarks.realx3d's, not a grid
     assert any(g.name == "lom-holdout.yaml" for g in grids)
     for grid in grids:
         spec = load_grid(grid)
@@ -148,3 +148,16 @@ def test_grid_paths_resolve_from_any_folder(tmp_path, monkeypatch):
     own.write_text((GRIDS / "smoke.yaml").read_text().replace("name: smoke", "name: mine"))
     assert load_grid(Path("benchmarks/configs/smoke.yaml")).name == "mine"
     assert config_file(Path("configs/scenes/dark-noisy.yaml")) == CONFIGS / "scenes" / "dark-noisy.yaml"
+
+
+def test_the_realx3d_benchmark_file_loads_and_a_bad_one_is_one_line(tmp_path):
+    """benchmarks/configs/realx3d.yaml names the calibration pairs and the eight scenes; a file without them is refused."""
+    from benchmarks.realx3d import RealX3DSpecError, load_spec
+
+    spec = load_spec(GRIDS / "realx3d.yaml")
+    assert spec["calibrate"].endswith("realx3d/BlueHawaii") and len(spec["scenes"]) == 8
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("scenes: {}\n")
+    with pytest.raises(RealX3DSpecError, match="needs 'calibrate: PAIRS'") as err:
+        load_spec(bad)
+    assert "\n" not in str(err.value)

@@ -205,3 +205,9 @@ def test_calibrate_never_replaces_a_file_that_is_not_a_profile(tmp_path):
     with pytest.raises(Exception, match="not a camera profile"):
         Calibrate(pairs=root, out=notes, enhance=EnhanceConfig(correction="none")).main()
     assert notes.read_text() == "{}"
+
+
+def test_the_profile_path_is_recorded_absolute(tmp_path, monkeypatch):
+    """A run's config.yml names the profile so that ns-eval or ns-viewer started in another folder finds it."""
+    monkeypatch.chdir(tmp_path)
+    assert EnhanceConfig(profile="camera.json").profile == tmp_path / "camera.json"

@@ -143,6 +143,11 @@ class EnhanceConfig(InstantiateConfig):
                     )
         self.__dict__.update(state)
 
+    def __post_init__(self) -> None:
+        # Absolute, so that the run's config.yml names the profile from any folder ns-eval or ns-viewer start in.
+        if self.profile is not None:
+            self.profile = Path(self.profile).expanduser().absolute()
+
     def exposure_target(self) -> Optional[float]:
         """The metered level the exposure step lifts to, or None when it is off (``none``; ``auto`` with a profile)."""
         if self.exposure == "auto":
