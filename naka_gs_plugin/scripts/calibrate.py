@@ -52,6 +52,7 @@ class Calibrate:
     sheet_pairs: int = 4
     """Pairs shown in the before/after sheet (``<out stem>_sheet.png`` beside the profile; 0: no sheet)."""
     seed: int = 0
+    """Seed of the fit's random pixel batches."""
 
     def sheet_path(self) -> Path:
         return self.out.with_name(f"{self.out.stem}_sheet.png")
