@@ -134,7 +134,7 @@ class Enhance:
             k = min(self.sheet_views, len(images))
             rows = [[im.numpy() for im in images[:k]]]
             if self.enhance.method == "naka" and self.enhance.correction != "none":
-                naka_only = Enhancer(dataclasses.replace(self.enhance, correction="none"))
+                naka_only = Enhancer(dataclasses.replace(self.enhance, correction="none", profile=None))
                 rows.append(
                     [im.numpy() for im in naka_only.enhance_images(images[:k], description="Naka only (sheet)")]
                 )
