@@ -30,6 +30,7 @@ import yaml
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from benchmarks.harness import timed
+from naka_gs_plugin.data.lowlight_dataparser import read_split
 from naka_gs_plugin.data.safe_io import atomic_write_bytes
 
 JPEG_QUALITY = 95
@@ -45,7 +46,8 @@ def _bin(name: str) -> str:
 
 def render_test_views(config_yml: Path, out: Path) -> int:
     """Render every frame of the run's scene's ``transforms_test.json`` at the json's resolution into ``out``,
-    named as the frame's file; returns the count."""
+    named as the frame's file; returns the count. (``ns-render dataset --split test`` renders the same poses, but at
+    the training resolution and under its own names.)"""
     import cv2
     import torch
     from nerfstudio.utils.eval_utils import eval_setup
@@ -125,7 +127,7 @@ class RealX3D:
             start = time.perf_counter()
             record["renders"] = render_test_views(config_yml, self.out / "challenge" / name)
             record["render_s"] = round(time.perf_counter() - start, 1)
-            if all(Path(p).exists() for p in _test_images(Path(scene))):
+            if all(p.exists() for p in read_split(Path(scene), "transforms_test.json").images):
                 eval_json = self.out / "eval" / f"{name}.json"
                 eval_json.parent.mkdir(parents=True, exist_ok=True)
                 subprocess.run(
@@ -135,11 +137,6 @@ class RealX3D:
             results_file.write_text(json.dumps(results, indent=1))
             _log(f"{name}: {json.dumps(record)}")
         return results
-
-
-def _test_images(scene: Path) -> list:
-    meta = json.loads((scene / "transforms_test.json").read_text())
-    return [scene / f["file_path"] for f in meta["frames"]]
 
 
 def entrypoint(args: Optional[Sequence[str]] = None) -> None:

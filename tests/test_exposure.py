@@ -9,12 +9,14 @@ from naka_gs_plugin.enhance.exposure import (
     MAX_GAIN,
     METERED_TARGET,
     _gain,
-    _linear,
     _luminance,
     _sample,
     apply_gain,
     lift_gain,
     metered_level,
+)
+from naka_gs_plugin.enhance.exposure import (
+    srgb_to_linear as _linear,
 )
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
 

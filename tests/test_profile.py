@@ -10,6 +10,8 @@ import torch
 from torch.testing import assert_close
 
 from naka_gs_plugin.data.pairs import PairsError, align, find_pairs, load_pairs
+from naka_gs_plugin.data.safe_io import UnsafeOutputError
+from naka_gs_plugin.enhance.exposure import linear_to_srgb, srgb_to_linear
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig, EnhanceOptionError, Enhancer
 from naka_gs_plugin.enhance.profile import (
     KNOTS,
@@ -18,7 +20,6 @@ from naka_gs_plugin.enhance.profile import (
     apply_maps,
     apply_profile,
     fit_profile,
-    srgb_to_linear,
 )
 from naka_gs_plugin.enhance.stages import CaptureToneStage, ExposureStage, ProfileStage
 from naka_gs_plugin.scripts.calibrate import Calibrate
@@ -45,8 +46,6 @@ def _dark(high: np.ndarray, ratio: float = 40.0) -> np.ndarray:
     """``high`` taken with a ``ratio`` times shorter shutter: linear light divided, 8-bit sRGB codes."""
     lin = torch.from_numpy(high)
     low = torch.from_numpy(np.asarray(srgb_to_linear(lin))) / ratio
-    from naka_gs_plugin.enhance.profile import linear_to_srgb
-
     return (np.asarray(linear_to_srgb(low)) * 255).round().astype(np.uint8)
 
 
@@ -202,7 +201,7 @@ def test_calibrate_never_replaces_a_file_that_is_not_a_profile(tmp_path):
     root = _write_pairs(tmp_path / "pairs", n=3)
     notes = tmp_path / "notes.json"
     notes.write_text("{}")
-    with pytest.raises(Exception, match="not a camera profile"):
+    with pytest.raises(UnsafeOutputError, match="not a camera profile"):
         Calibrate(pairs=root, out=notes, enhance=EnhanceConfig(correction="none")).main()
     assert notes.read_text() == "{}"
 

@@ -127,8 +127,13 @@ def align(low: np.ndarray, high: np.ndarray) -> Tuple[Tuple[float, float], float
 def exposure_ratio(low: np.ndarray, high: np.ndarray) -> float:
     """Linear light of ``high`` over ``low`` (sRGB [0, 1]), summed over pixels where the dark frame recorded
     more than 2 codes and the normal one is not clipped, after a blur that averages the dark frame's noise."""
+    import kornia
+    import torch
+
     lo, hi = (cv2.GaussianBlur(x, (0, 0), 2.0) for x in (low, high))
-    lin = [np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4) for x in (lo, hi)]
+    lin = [
+        kornia.color.rgb_to_linear_rgb(torch.from_numpy(x).permute(2, 0, 1)).permute(1, 2, 0).numpy() for x in (lo, hi)
+    ]
     ok = (lo.mean(axis=2) > 2 / 255) & (hi.max(axis=2) < SATURATED)
     if ok.sum() < 100:
         return float("nan")

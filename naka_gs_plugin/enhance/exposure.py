@@ -44,7 +44,7 @@ LUMA = (0.2126, 0.7152, 0.0722)
 """Rec. 709 / sRGB luminance weights of linear R, G, B."""
 
 
-def _linear(srgb: Float[Tensor, "*batch 3"]) -> Float[Tensor, "*batch 3"]:
+def srgb_to_linear(srgb: Float[Tensor, "*batch 3"]) -> Float[Tensor, "*batch 3"]:
     """sRGB [0, 1] -> linear RGB, channel-last (kornia's transfer function, which wants channels first)."""
     # Imported here: every ns-* command imports the method config, hence this module, and stays light.
     import kornia
@@ -60,11 +60,11 @@ def _linear_luminance(linear: Float[Tensor, "N 3"]) -> float:
 
 def _luminance(srgb: Float[Tensor, "N 3"]) -> float:
     """Mean linear luminance of sRGB pixels."""
-    return _linear_luminance(_linear(srgb))
+    return _linear_luminance(srgb_to_linear(srgb))
 
 
-def _srgb(linear: Float[Tensor, "*batch 3"]) -> Float[Tensor, "*batch 3"]:
-    """Linear RGB [0, 1] -> sRGB, channel-last (the inverse of :func:`_linear`)."""
+def linear_to_srgb(linear: Float[Tensor, "*batch 3"]) -> Float[Tensor, "*batch 3"]:
+    """Linear RGB [0, 1] -> sRGB, channel-last (the inverse of :func:`srgb_to_linear`)."""
     import kornia
 
     as_image = linear.reshape(-1, 3).T[:, :, None]  # [3, N, 1]
@@ -73,7 +73,7 @@ def _srgb(linear: Float[Tensor, "*batch 3"]) -> Float[Tensor, "*batch 3"]:
 
 def _encode(linear: float) -> float:
     """Linear [0, 1] -> sRGB [0, 1] of one grey level."""
-    return float(_srgb(torch.full((1, 3), linear, dtype=torch.float64))[0, 0])
+    return float(linear_to_srgb(torch.full((1, 3), linear, dtype=torch.float64))[0, 0])
 
 
 def metered_level(images: Sequence[Float[Tensor, "H W 3"]]) -> float:
@@ -92,8 +92,8 @@ def lift_gain(images: Sequence[Float[Tensor, "H W 3"]], target: float = METERED_
     ``target`` (1 when the scene already meters at least ``target``). Bisection on every ``stride``-th pixel."""
     if not 0.0 < target < 1.0:
         raise ValueError(f"exposure target must be in (0, 1), got {target!r}")
-    goal = float(_linear(torch.full((1, 3), target))[0, 0])
-    linear = _linear(_sample(images, stride))
+    goal = float(srgb_to_linear(torch.full((1, 3), target))[0, 0])
+    linear = srgb_to_linear(_sample(images, stride))
     if linear.numel() == 0 or _linear_luminance(linear) >= goal:
         return 1.0
     # Each channel's linear values sorted once, with prefix sums: at a gain the pixels below the knee meter as
@@ -129,7 +129,7 @@ def _shoulder(u: Tensor) -> Tensor:
 
 def _gain(srgb: Float[Tensor, "*batch 3"], gain: float) -> Float[Tensor, "*batch 3"]:
     """sRGB [0, 1] -> times ``gain`` in linear light, shoulder, -> sRGB [0, 1]."""
-    return _srgb(_shoulder(_linear(srgb.clamp(0.0, 1.0)) * gain)).clamp(0.0, 1.0)
+    return linear_to_srgb(_shoulder(srgb_to_linear(srgb.clamp(0.0, 1.0)) * gain)).clamp(0.0, 1.0)
 
 
 def apply_gain(images: Sequence[Float[Tensor, "H W 3"]], gain: float) -> List[Float[Tensor, "H W 3"]]:

@@ -14,7 +14,6 @@ pair does not share beyond it, a moved object or a lamp, pulls no harder) on are
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 from dataclasses import asdict, dataclass, field
@@ -24,6 +23,8 @@ from typing import Any, Dict, List, Sequence
 import torch
 from jaxtyping import Float
 from torch import Tensor
+
+from naka_gs_plugin.enhance.exposure import linear_to_srgb, srgb_to_linear
 
 PROFILE_FORMAT = "naka-gs-camera-profile"
 PROFILE_VERSION = 1
@@ -40,26 +41,6 @@ HUBER_DELTA = 0.1
 
 class CameraProfileError(ValueError):
     """A profile file that cannot be used (missing, not a profile, damaged); the message names it and the fix."""
-
-
-def _channels_first(fn: Any, x: Float[Tensor, "*N 3"]) -> Float[Tensor, "*N 3"]:
-    """kornia's colour conversions on channel-last values (they take ``[3, H, W]``)."""
-    flat = x.reshape(-1, 3)
-    return fn(flat.t()[:, :, None])[:, :, 0].t().reshape(x.shape)
-
-
-def srgb_to_linear(x: Float[Tensor, "*N 3"]) -> Float[Tensor, "*N 3"]:
-    """sRGB-encoded [0, 1] -> linear light (kornia)."""
-    import kornia  # here: every ns-* command imports the enhancement chain at start-up and must stay light
-
-    return _channels_first(kornia.color.rgb_to_linear_rgb, x)
-
-
-def linear_to_srgb(x: Float[Tensor, "*N 3"]) -> Float[Tensor, "*N 3"]:
-    """Linear light, clipped to [0, 1] -> sRGB-encoded [0, 1] (kornia)."""
-    import kornia
-
-    return _channels_first(kornia.color.linear_rgb_to_rgb, x.clamp(0, 1))
 
 
 @dataclass
@@ -124,9 +105,10 @@ def chain_key(stages: Sequence[Any]) -> Dict[str, Any]:
     return json.loads(json.dumps({"stages": keys}, default=str))
 
 
-def file_sha1(path: Path) -> str:
-    """The profile file's content hash (what the cache key carries, not the path)."""
-    return hashlib.sha1(Path(path).read_bytes()).hexdigest()
+def _monotone(first: Float[Tensor, "3 1"], steps: Float[Tensor, "3 K-1"]) -> Float[Tensor, "3 K"]:
+    """Curves from their fitted parameters: the first knot's value and the steps between knots, both through
+    softplus, so every curve is positive and rising."""
+    return torch.cumsum(torch.nn.functional.softplus(torch.cat([first, steps], 1)), 1)
 
 
 def _curve(x: Float[Tensor, "*N 3"], curves: Float[Tensor, "3 K"]) -> Float[Tensor, "*N 3"]:
@@ -144,13 +126,12 @@ def apply_maps(
     image: Float[Tensor, "*N 3"], curves: Float[Tensor, "3 K"], matrix: Float[Tensor, "3 3"]
 ) -> Float[Tensor, "*N 3"]:
     """The profile's maths on sRGB [0, 1] values (channel-last): curves to linear light, matrix, sRGB encoding."""
-    return linear_to_srgb(_curve(image, curves) @ matrix.t())
+    return linear_to_srgb((_curve(image, curves) @ matrix.t()).clamp(0, 1))
 
 
 def apply_profile(image: Float[Tensor, "H W 3"], profile: CameraProfile) -> Float[Tensor, "H W 3"]:
     """``image`` (sRGB [0, 1]) as the profile's camera renders it at normal light (sRGB [0, 1], float32)."""
-    curves, matrix = profile.tensors()
-    return apply_maps(image.float(), curves, matrix)
+    return apply_maps(image.float(), *profile.tensors())
 
 
 def _area(image: Float[Tensor, "H W 3"], long_side: int) -> Float[Tensor, "h w 3"]:
@@ -196,14 +177,13 @@ def fit_profile(
     batch = min(len(x), batch)
     for _ in range(steps):
         idx = torch.randint(len(x), (batch,), generator=gen)
-        curves = torch.cumsum(torch.cat([torch.nn.functional.softplus(first), torch.nn.functional.softplus(inc)], 1), 1)
-        out = apply_maps(x[idx], curves, matrix)
+        out = apply_maps(x[idx], _monotone(first, inc), matrix)
         loss = torch.nn.functional.huber_loss(out, y[idx], delta=HUBER_DELTA)
         opt.zero_grad()
         loss.backward()
         opt.step()
         sched.step()
     with torch.no_grad():
-        curves = torch.cumsum(torch.cat([torch.nn.functional.softplus(first), torch.nn.functional.softplus(inc)], 1), 1)
+        curves = _monotone(first, inc)
         final = float(torch.nn.functional.huber_loss(apply_maps(x, curves, matrix), y, delta=HUBER_DELTA))
     return curves.detach(), matrix.detach(), {"samples": int(len(x)), "steps": steps, "loss": final}

@@ -28,7 +28,7 @@ from naka_gs_plugin.enhance.chroma import capture_chroma
 from naka_gs_plugin.enhance.correction import CorrectionRunner, file_digest, load_correction
 from naka_gs_plugin.enhance.exposure import apply_gain, lift_gain
 from naka_gs_plugin.enhance.naka import linear_stretch, naka_rushton, stretch_stats
-from naka_gs_plugin.enhance.profile import CameraProfile, apply_profile, file_sha1
+from naka_gs_plugin.enhance.profile import CameraProfile, apply_maps
 from naka_gs_plugin.enhance.tone import DEFAULT_BLUR as TONE_BLUR
 from naka_gs_plugin.enhance.tone import FLOOR_CODES as TONE_FLOOR
 from naka_gs_plugin.enhance.tone import capture_tone
@@ -228,6 +228,8 @@ class ProfileStage(ViewStage):
     profile_sha1: str = ""
     path: Path = runtime(default=Path())
     _profile: Optional[CameraProfile] = runtime(default=None, init=False)
+    _maps: Optional[Tuple[Tensor, Tensor]] = runtime(default=None, init=False)
+    """The profile's curves and matrix as tensors, made once for every view."""
 
     @classmethod
     def build(cls, config: Any, enhancer: Any) -> Optional["ProfileStage"]:
@@ -235,7 +237,7 @@ class ProfileStage(ViewStage):
             return None
         path = Path(config.profile)
         CameraProfile.load(path, PROFILE_OPTION)  # a bad file fails here, before any image is read
-        return cls(profile_sha1=file_sha1(path), path=path)
+        return cls(profile_sha1=file_digest(path), path=path)
 
     def profile(self) -> CameraProfile:
         if self._profile is None:
@@ -243,7 +245,9 @@ class ProfileStage(ViewStage):
         return self._profile
 
     def apply(self, image: Float[Tensor, "H W 3"], low: Float[Tensor, "H W 3"]) -> Float[Tensor, "H W 3"]:
-        return apply_profile(image, self.profile())
+        if self._maps is None:
+            self._maps = self.profile().tensors()
+        return apply_maps(image.float(), *self._maps)
 
     def describe(self) -> str:
         return f"camera profile {self.path.name}"
