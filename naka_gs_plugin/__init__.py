@@ -34,14 +34,17 @@ except ImportError:
     from numpy.core.multiarray import scalar as _scalar
 
 # Both names: a checkpoint written under numpy 1 says ``numpy.core...``, under numpy 2 ``numpy._core...``.
-_torch.serialization.add_safe_globals(
-    [
-        (_scalar, "numpy.core.multiarray.scalar"),
-        (_scalar, "numpy._core.multiarray.scalar"),
-        _np.dtype,
-        type(_np.dtype(_np.float64)),
-    ]
-)
+# Before torch 2.6 ``torch.load`` defaults to ``weights_only=False`` (nothing to register), and before 2.5 it
+# has no ``add_safe_globals`` with names.
+if _torch.__version__ >= "2.6":
+    _torch.serialization.add_safe_globals(
+        [
+            (_scalar, "numpy.core.multiarray.scalar"),
+            (_scalar, "numpy._core.multiarray.scalar"),
+            _np.dtype,
+            type(_np.dtype(_np.float64)),
+        ]
+    )
 
 RENAMED = {"naka_gs_plugin.data.lowlight_datamanager": "naka_gs_plugin.datamanager"}
 """Old module name -> new one, for saved run configs (``!!python/object:<module>.<class>``)."""

@@ -74,9 +74,10 @@ full-size steps")."""
 class FusedAdamConfig(AdamOptimizerConfig):
     """nerfstudio's Adam with torch's ``fused`` switch, on by default on a CPU: one compiled kernel per step
     instead of a dozen whole-tensor operations per parameter (torch's CPU default), the same update to float32
-    rounding. On CUDA torch's own default (foreach) is kept, as splatfacto's GPU schedule was measured with it."""
+    rounding. On CUDA torch's own default (foreach) is kept, as splatfacto's GPU schedule was measured with it;
+    so is it on torch < 2.4, which has no fused Adam for the CPU."""
 
-    fused: tyro.conf.Suppress[Optional[bool]] = None if CUDA else True
+    fused: tyro.conf.Suppress[Optional[bool]] = None if CUDA or torch.__version__ < "2.4" else True
     """True: torch's fused Adam; None: torch's default implementation for the device. Not a command-line option
     (it changes no result); a run's config.yml records it."""
 

@@ -38,10 +38,22 @@ _LENT: Dict[int, Tuple[subprocess.Popen, int]] = {}
 """Children holding a core of this process's (:func:`core_lent`), by pid, with the thread count to restore."""
 
 
+def _cpu_has(feature: str) -> bool:
+    """Whether the CPU has ``feature`` (``avx512_bf16`` or ``amx_tile``): PyTorch's probe, which torch < 2.3 lacks;
+    there the kernel's flags in ``/proc/cpuinfo`` (Linux), else False (float32 is the safe choice)."""
+    probe = getattr(torch.cpu, f"_is_{feature}_supported", None)
+    if probe is not None:
+        return bool(probe())
+    try:
+        return feature in Path("/proc/cpuinfo").read_text().split()
+    except OSError:
+        return False
+
+
 def native_bf16() -> Tuple[bool, str]:
     """Whether bfloat16 convolutions run natively here, and why: the CPU has AVX-512 BF16 or AMX, and
     neither oneDNN nor ATen is capped below it (``ONEDNN_MAX_CPU_ISA``, ``ATEN_CPU_CAPABILITY``)."""
-    if not (torch.cpu._is_avx512_bf16_supported() or torch.cpu._is_amx_tile_supported()):
+    if not (_cpu_has("avx512_bf16") or _cpu_has("amx_tile")):
         return False, "this CPU has neither AVX-512 BF16 nor AMX"
     if not torch.ops.mkldnn._is_mkldnn_bf16_supported():
         return False, "oneDNN has no bfloat16 kernels here (ONEDNN_MAX_CPU_ISA caps it)"

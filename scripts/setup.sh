@@ -2,8 +2,9 @@
 # One-time set-up on a fresh Debian machine (Python 3.11, no GPU needed):
 #   1. the system library open3d needs (libusb-1.0-0), via apt-get, only when missing;
 #   2. a virtual environment in .venv;
-#   3. this package, editable, with its dev extra (pytest).
-# Idempotent: a second run with an unchanged pyproject.toml returns in about a second.
+#   3. this package, editable, with its dev extra (pytest), at the exact versions of scripts/constraints.txt
+#      (the newest set measured; pyproject.toml states the supported ranges).
+# Idempotent: a second run with unchanged pyproject.toml and constraints returns in about a second.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -21,7 +22,7 @@ if [ ! -x .venv/bin/python ]; then
 fi
 
 stamp=.venv/.naka-gs-installed
-want=$(sha1sum pyproject.toml | cut -d' ' -f1)
+want=$(cat pyproject.toml scripts/constraints.txt | sha1sum | cut -d' ' -f1)
 if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   # The install needs ~8.5 GB; pip's own out-of-space error comes late and buries the cause.
   free_kb=$(df -Pk .venv | awk 'NR==2 {print $4}')
@@ -33,7 +34,7 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   start=$(date +%s)
   .venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip 2>&1 | grep -v "is ignored" || true
   # pip's own warnings about missing local index folders are noise on some machines: filter them.
-  .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[dev]" 2>&1 | grep -v "is ignored" || true
+  .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[dev]" -c scripts/constraints.txt 2>&1 | grep -v "is ignored" || true
   .venv/bin/python -c "import naka_gs_plugin, nerfstudio, open3d, kornia" \
     || { echo "[setup] install failed: see the pip output above"; exit 1; }
   echo "$want" > "$stamp"
