@@ -35,15 +35,15 @@ def describe_cpu() -> str:
     """One line: CPU model, ISA features that matter here, ATen capability, native bf16, threads."""
     import torch
 
-    from naka_gs_plugin.cpu import native_bf16
+    from naka_gs_plugin.cpu import cpu_has, native_bf16
 
     features = [
         name
         for name, present in (
-            ("AVX2", torch.cpu._is_avx2_supported()),
-            ("AVX-512", torch.cpu._is_avx512_supported()),
-            ("AVX-512 BF16", torch.cpu._is_avx512_bf16_supported()),
-            ("AMX", torch.cpu._is_amx_tile_supported()),
+            ("AVX2", cpu_has("avx2")),
+            ("AVX-512", cpu_has("avx512")),
+            ("AVX-512 BF16", cpu_has("avx512_bf16")),
+            ("AMX", cpu_has("amx_tile")),
         )
         if present
     ]

@@ -1,5 +1,6 @@
 """What this CPU can do, for the places that choose a dtype or a thread count (a leaf module).
 
+- :func:`cpu_has`: an ISA feature (AVX2, AVX-512, AVX-512 BF16, AMX), by PyTorch's probe or the kernel's flags.
 - :func:`native_bf16`: bfloat16 convolutions are fast only with AVX-512 BF16 or AMX; elsewhere oneDNN
   emulates them, several times slower than float32 (docs/cpu.md; the correction network's ``auto``
   mode reads this).
@@ -38,14 +39,20 @@ _LENT: Dict[int, Tuple[subprocess.Popen, int]] = {}
 """Children holding a core of this process's (:func:`core_lent`), by pid, with the thread count to restore."""
 
 
-def _cpu_has(feature: str) -> bool:
-    """Whether the CPU has ``feature`` (``avx512_bf16`` or ``amx_tile``): PyTorch's probe, which torch < 2.3 lacks;
-    there the kernel's flags in ``/proc/cpuinfo`` (Linux), else False (float32 is the safe choice)."""
+CPUINFO = Path("/proc/cpuinfo")
+_CPUINFO_FLAG = {"avx512": "avx512f"}
+"""PyTorch's name of a feature -> the kernel's flag in ``/proc/cpuinfo``, where the two differ."""
+
+
+def cpu_has(feature: str) -> bool:
+    """Whether the CPU has ``feature`` (``avx2``, ``avx512``, ``avx512_bf16``, ``amx_tile``): PyTorch's probe
+    ``torch.cpu._is_<feature>_supported``, which torch < 2.3 lacks; there the kernel's flags in ``/proc/cpuinfo``
+    (Linux), else False (float32 and the generic kernels are the safe choice)."""
     probe = getattr(torch.cpu, f"_is_{feature}_supported", None)
     if probe is not None:
         return bool(probe())
     try:
-        return feature in Path("/proc/cpuinfo").read_text().split()
+        return _CPUINFO_FLAG.get(feature, feature) in CPUINFO.read_text().split()
     except OSError:
         return False
 
@@ -53,7 +60,7 @@ def _cpu_has(feature: str) -> bool:
 def native_bf16() -> Tuple[bool, str]:
     """Whether bfloat16 convolutions run natively here, and why: the CPU has AVX-512 BF16 or AMX, and
     neither oneDNN nor ATen is capped below it (``ONEDNN_MAX_CPU_ISA``, ``ATEN_CPU_CAPABILITY``)."""
-    if not (_cpu_has("avx512_bf16") or _cpu_has("amx_tile")):
+    if not (cpu_has("avx512_bf16") or cpu_has("amx_tile")):
         return False, "this CPU has neither AVX-512 BF16 nor AMX"
     if not torch.ops.mkldnn._is_mkldnn_bf16_supported():
         return False, "oneDNN has no bfloat16 kernels here (ONEDNN_MAX_CPU_ISA caps it)"

@@ -9,10 +9,11 @@ import naka_gs_plugin.cpu as cpu
 
 
 def test_native_bf16_needs_the_cpu_and_uncapped_kernels(monkeypatch):
-    monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda: False)
-    monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda: False)
+    # raising=False: torch < 2.3 has no such probes (cpu_has reads /proc/cpuinfo there).
+    monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda: False, raising=False)
+    monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda: False, raising=False)
     assert cpu.native_bf16() == (False, "this CPU has neither AVX-512 BF16 nor AMX")
-    monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda: True)
+    monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda: True, raising=False)
     monkeypatch.setattr(torch.ops.mkldnn, "_is_mkldnn_bf16_supported", lambda: False)
     assert "ONEDNN_MAX_CPU_ISA" in cpu.native_bf16()[1]
     monkeypatch.setattr(torch.ops.mkldnn, "_is_mkldnn_bf16_supported", lambda: True)
@@ -20,6 +21,17 @@ def test_native_bf16_needs_the_cpu_and_uncapped_kernels(monkeypatch):
     assert cpu.native_bf16() == (False, "PyTorch's kernels run at AVX2 (ATEN_CPU_CAPABILITY caps them)")
     monkeypatch.setattr(torch.backends.cpu, "get_cpu_capability", lambda: "AVX512")
     assert cpu.native_bf16()[0]
+
+
+def test_cpu_has_reads_the_kernels_flags_without_pytorchs_probe(monkeypatch, tmp_path):
+    """torch < 2.3 has no ``torch.cpu._is_<feature>_supported``: the flags of /proc/cpuinfo answer instead."""
+    for feature in ("avx2", "avx512", "avx512_bf16", "amx_tile"):
+        monkeypatch.delattr(torch.cpu, f"_is_{feature}_supported", raising=False)
+    monkeypatch.setattr(cpu, "CPUINFO", tmp_path / "cpuinfo")
+    (tmp_path / "cpuinfo").write_text("processor\t: 0\nflags\t\t: fpu sse avx2 avx512f avx512_bf16\n")
+    assert [cpu.cpu_has(f) for f in ("avx2", "avx512", "avx512_bf16", "amx_tile")] == [True, True, True, False]
+    monkeypatch.setattr(cpu, "CPUINFO", tmp_path / "absent")
+    assert not cpu.cpu_has("avx2")
 
 
 def test_cgroup_quota_v2_and_v1(tmp_path):
