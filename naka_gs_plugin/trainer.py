@@ -221,10 +221,9 @@ def _take_over(claim: Path, held: Optional[dict]) -> None:
         aside.unlink(missing_ok=True)
         return
     aside.unlink(missing_ok=True)
-    who = f"pid {held.get('pid')}" if held is not None else "a process that was stopped while claiming it"
+    who = f"pid {held.get('pid')}, no longer running" if held is not None else "its claim file was unreadable"
     CONSOLE.print(
-        f"naka-gs: {claim.parent}: taking over the claim of a training that ended without releasing it ({who}, "
-        "no longer running)",
+        f"naka-gs: {claim.parent}: taking over the claim of a training that ended without releasing it ({who})",
         markup=False,
         soft_wrap=True,
     )
@@ -232,11 +231,12 @@ def _take_over(claim: Path, held: Optional[dict]) -> None:
 
 def _give_up_run_folder(run: Path, token: Optional[str], created: Sequence[Path]) -> None:
     """Release the claim ``token`` of ``run`` (if any); when this run created the folder (``created``, deepest first),
-    remove its config.yml and those folders again, unless one holds anything else."""
+    remove the config.yml it wrote (only while it held the claim) and those folders again, unless one holds anything
+    else."""
+    if created and token is not None:
+        (run / "config.yml").unlink(missing_ok=True)
     if token is not None:
         release_run_folder(run / RUN_CLAIM, token)
-    if created:
-        (run / "config.yml").unlink(missing_ok=True)
     for folder in created:
         try:
             folder.rmdir()
@@ -622,7 +622,8 @@ class NakaGSTrainerConfig(TrainerConfig):
             self._refuse_a_run_folder_in_use()
             super().save_config()
         except BaseException as err:
-            _give_up_run_folder(run, token, created)
+            # Refused by another run's claim: the folders are that run's, whoever made them.
+            _give_up_run_folder(run, token, created if token is not None or isinstance(err, OSError) else [])
             if isinstance(err, OSError):
                 raise SystemExit(
                     f"naka-gs: cannot write the run folder {run} ({err.strerror or err}); pick a writable --output-dir"
