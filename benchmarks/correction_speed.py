@@ -65,7 +65,7 @@ def quality_pairs() -> List[Tuple[str, Path, Path]]:
     """(set, low, gt) for the LOM test views (``transforms_test.json``) and LOL eval15."""
     pairs = []
     for scene in sorted((DATA / "lom").glob("*/transforms_test.json")):
-        for frame in json.loads(scene.read_text())["frames"]:
+        for frame in json.loads(scene.read_text(encoding="utf-8-sig"))["frames"]:
             gt = scene.parent / frame["file_path"]
             pairs.append(("lom", scene.parent / "low" / gt.name, gt))
     for gt in sorted((DATA / "lol" / "eval" / "high").glob("*")):

@@ -52,7 +52,7 @@ def prepare(scene: Path, images: str, work: Path) -> tuple[Path, Path]:
     (``images`` folder) and its COLMAP model restricted to them. Returns (project, naka-gs scene)."""
     import pycolmap
 
-    frames = json.loads((scene / "transforms_train.json").read_text())
+    frames = json.loads((scene / "transforms_train.json").read_text(encoding="utf-8-sig"))
     train = {Path(f["file_path"]).name for f in frames["frames"]}
     model = pycolmap.Reconstruction(str(scene / "colmap_sparse" / "0"))
     for image in list(model.images.values()):
@@ -71,7 +71,7 @@ def prepare(scene: Path, images: str, work: Path) -> tuple[Path, Path]:
     for split in ("train", "test", "val"):
         path = scene / f"transforms_{split}.json"
         if path.is_file():
-            data = json.loads(path.read_text())
+            data = json.loads(path.read_text(encoding="utf-8-sig"))
             if split == "train":
                 for frame in data["frames"]:
                     frame["file_path"] = f"{images}/{Path(frame['file_path']).name}"

@@ -34,6 +34,12 @@ pycolmap): a class whose module is not loaded cannot have been raised. tests/tes
 ``*Error`` class of the package is here or is a ``SystemExit`` already."""
 
 
+def signal_exit_status(signum: int) -> int:
+    """The exit status of a command that ``signum`` stopped: 128 + its number, as shells report a command the signal
+    killed (130 for Ctrl-C, 143 for SIGTERM), also when the command cleaned up and exited by itself."""
+    return 128 + int(signum)
+
+
 def is_user_error(err: BaseException) -> bool:
     """Whether ``err`` is one of :data:`USER_ERRORS` (or a subclass of one)."""
     return any(f"{cls.__module__}.{cls.__qualname__}" in USER_ERRORS for cls in type(err).__mro__)

@@ -7,8 +7,10 @@ every ``log_every`` seconds, and the last -- each with the rate and the time lef
 
 from __future__ import annotations
 
+import contextlib
+import threading
 import time
-from typing import Dict, Optional
+from typing import Callable, Dict, Iterator, Optional
 
 from rich.console import Console
 from rich.progress import (
@@ -69,3 +71,30 @@ class StageProgress(Progress):
         self.console.print(
             f"{task.description}: {done:.0f}{of} in {elapsed:.0f} s ({rate:.3g}/s{left})", markup=False, highlight=False
         )
+
+
+@contextlib.contextmanager
+def progress_from(progress: Progress, task: TaskID, read: Callable[[], int], every: float = 0.5) -> Iterator[None]:
+    """Show ``read()`` (items done so far) as ``task``'s progress every ``every`` seconds while the body runs: for a
+    long call that reports nothing itself but whose progress can be read from elsewhere (pycolmap's feature
+    extraction and matching, from its database). A ``read`` that fails is skipped until the next poll."""
+    done = threading.Event()
+
+    def poll() -> None:
+        while not done.wait(every):
+            try:
+                progress.update(task, completed=read())
+            except Exception:  # noqa: BLE001 -- progress is a display: a failed read must never stop the work
+                pass
+
+    thread = threading.Thread(target=poll, name="naka-gs-progress", daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        done.set()
+        thread.join()
+    try:
+        progress.update(task, completed=read())
+    except Exception:  # noqa: BLE001
+        pass

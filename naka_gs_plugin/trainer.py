@@ -5,7 +5,7 @@
   write cut short (full disk, kill) never replaces or poses as a valid ``step-*.ckpt``.
 - ``--load-dir`` / ``--load-checkpoint`` skip a corrupt or truncated checkpoint for the newest valid
   older one, and fail with one line naming the folder when none is valid.
-- SIGTERM is handled as Ctrl-C; either one before the first training step has finished (while the
+- SIGTERM is handled as Ctrl-C, exiting 143 (128 + the signal, the shells' convention); either one before the first training step has finished (while the
   training images load and are enhanced, which can take minutes) stops at once, nothing to save.
 - With ``--vis tensorboard``, the scalars nerfstudio records at every step (iteration time, ETA, rays per second,
   learning rates) are written at the steps it logs the losses at (:class:`LoggedStepsTensorboardWriter`).
@@ -26,10 +26,13 @@ whose behaviour this relies on are pinned by source hash in ``tests/test_trainer
 
 from __future__ import annotations
 
+import atexit
+import json
 import os
 import re
 import secrets
 import signal
+import socket
 import sys
 import threading
 import time
@@ -38,7 +41,7 @@ from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
 from types import FrameType
-from typing import List, Literal, NoReturn, Optional, Sequence, Type, Union
+from typing import List, Literal, NoReturn, Optional, Sequence, Set, Type, Union
 from unittest import mock
 
 import torch
@@ -49,9 +52,9 @@ from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.misc import step_check
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from naka_gs_plugin.errors import user_error_exit
+from naka_gs_plugin.errors import signal_exit_status, user_error_exit
 
-INTERRUPTED_EXIT_CODE = 130  # 128 + SIGINT, what shells report for a Ctrl-C'd command; SIGTERM exits with it too
+INTERRUPTED_EXIT_CODE = signal_exit_status(signal.SIGINT)  # 130, what shells report for a Ctrl-C'd command
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 CHECKPOINT_NAME = re.compile(r"step-(\d+)\.ckpt")
 # Upstream's ns-eval/ns-viewer/ns-export parse every name in the checkpoint folder as int(name[first "-" + 1 :
@@ -122,6 +125,135 @@ def _fsync_dir(folder: Path) -> None:
             os.close(fd)
 
 
+RUN_CLAIM = ".naka-gs-run"
+"""A run folder's claim: made with an exclusive create before anything else is written to the folder, holding the
+pid, host and a random token of the ns-train that writes it; removed when that training ends."""
+_LIVE_CLAIMS: Set[str] = set()
+"""Tokens of the claims this process holds (a claim copied along with a run folder is not one of them)."""
+
+
+def _claim_holder(claim: Path) -> Optional[dict]:
+    """The claim's record, or None when it is not one (unreadable, or cut short by a crash mid-write)."""
+    try:
+        record = json.loads(claim.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    return record if isinstance(record, dict) else None
+
+
+def _claim_is_live(record: Optional[dict]) -> bool:
+    """Whether the process that wrote ``record`` may still be writing the folder: on this host, a process with its
+    pid exists (its own token, for this process); on another host, always (its processes cannot be seen)."""
+    if record is None:
+        return False
+    if record.get("host") != socket.gethostname():
+        return True
+    pid = record.get("pid")
+    if not isinstance(pid, int) or pid <= 0:
+        return False
+    if pid == os.getpid():
+        return record.get("token") in _LIVE_CLAIMS
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # exists, owned by another user
+        return True
+    return True
+
+
+def _publish_exclusive(path: Path, text: str) -> None:
+    """Create ``path`` holding ``text``, or raise FileExistsError when it exists: written under a unique name and
+    hard-linked into place, so that no reader ever sees it empty or half written."""
+    tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}-{secrets.token_hex(4)}")
+    tmp.write_text(text, encoding="utf-8")
+    try:
+        os.link(tmp, path)
+    except FileExistsError:
+        raise
+    except OSError:  # a file system without hard links: an exclusive create, then the write
+        with open(path, "x", encoding="utf-8") as fh:
+            fh.write(text)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def claim_run_folder(run: Path) -> str:
+    """Claim the existing folder ``run`` for this process with an exclusive create of its :data:`RUN_CLAIM`; returns
+    the claim's token. The check that a folder is free and taking it are one step, so of two ``ns-train`` started
+    together into one folder exactly one gets it; the other ends with one line. A claim left by a run that died
+    without releasing it (a crash, ``kill -9``; its pid no longer exists on this host) is taken over, with one line.
+    Removed by :func:`release_run_folder` (at the latest when this process exits)."""
+    claim = run / RUN_CLAIM
+    token = secrets.token_hex(8)
+    record = {"pid": os.getpid(), "host": socket.gethostname(), "token": token, "started": time.time()}
+    for _ in range(3):  # a stale claim moved aside can be taken by another process first: look again
+        try:
+            _publish_exclusive(claim, json.dumps(record))
+        except FileExistsError:
+            held = _claim_holder(claim)
+            if _claim_is_live(held):
+                pid, host = held.get("pid"), held.get("host")  # type: ignore[union-attr]
+                raise SystemExit(
+                    f"naka-gs: {run} is claimed by another training (pid {pid} on {host}, its {RUN_CLAIM}); pick "
+                    f"another --timestamp or --output-dir -- if no ns-train is writing there any more, delete {claim}"
+                ) from None
+            _take_over(claim, held)
+            continue
+        _LIVE_CLAIMS.add(token)
+        atexit.register(release_run_folder, claim, token)
+        return token
+    raise SystemExit(f"naka-gs: {run}: other trainings keep claiming it; pick another --timestamp or --output-dir")
+
+
+def _take_over(claim: Path, held: Optional[dict]) -> None:
+    """Remove a stale claim, with one line; moved aside first, so that of two processes taking it over one does."""
+    aside = claim.with_name(f"{RUN_CLAIM}.stale-{os.getpid()}-{secrets.token_hex(4)}")
+    try:
+        os.rename(claim, aside)
+    except FileNotFoundError:
+        return  # another process took it over first
+    if _claim_is_live(_claim_holder(aside)):  # a fresh claim replaced the stale one meanwhile: give it back
+        try:
+            os.link(aside, claim)
+        except FileExistsError:
+            pass
+        aside.unlink(missing_ok=True)
+        return
+    aside.unlink(missing_ok=True)
+    who = f"pid {held.get('pid')}, no longer running" if held is not None else "its claim file was unreadable"
+    CONSOLE.print(
+        f"naka-gs: {claim.parent}: taking over the claim of a training that ended without releasing it ({who})",
+        markup=False,
+        soft_wrap=True,
+    )
+
+
+def _give_up_run_folder(run: Path, token: Optional[str], created: Sequence[Path]) -> None:
+    """Release the claim ``token`` of ``run`` (if any); when this run created the folder (``created``, deepest first),
+    remove the config.yml it wrote (only while it held the claim) and those folders again, unless one holds anything
+    else."""
+    if created and token is not None:
+        (run / "config.yml").unlink(missing_ok=True)
+    if token is not None:
+        release_run_folder(run / RUN_CLAIM, token)
+    for folder in created:
+        try:
+            folder.rmdir()
+        except OSError:
+            return
+
+
+def release_run_folder(claim: Path, token: str) -> None:
+    """Remove ``claim`` if it is still the one this process made with ``token``."""
+    if token not in _LIVE_CLAIMS:
+        return
+    _LIVE_CLAIMS.discard(token)
+    held = _claim_holder(claim)
+    if held is not None and held.get("token") == token:
+        claim.unlink(missing_ok=True)
+
+
 class LoggedStepsTensorboardWriter(writer.TensorboardWriter):
     """nerfstudio's tensorboard writer, writing the scalars the training loop records at every step (the iteration
     time and rays per second, both running averages over the last steps, the ETA and each group's learning rate)
@@ -150,6 +282,7 @@ class NakaGSTrainer(Trainer):
         (:data:`~naka_gs_plugin.errors.USER_ERRORS`: an empty ``--data`` folder, a truncated COLMAP model...) is then one line."""
         self._stop_step: Optional[int] = None  # the step running when the first Ctrl-C / SIGTERM came
         self._stop_name = "interrupted"  # "Ctrl-C" or "SIGTERM" once one came
+        self._stop_signum = signal.SIGINT  # the signal that stops the run (a KeyboardInterrupt of its own: Ctrl-C)
         self._done_step: Optional[int] = None  # the last step whose iteration and callbacks finished
         self._previous_handlers: dict = {}  # the signal handlers _on_stop_signal replaced (restored after)
         self._catch_stop_signals()
@@ -196,6 +329,8 @@ class NakaGSTrainer(Trainer):
             raise exit_ from None
         finally:
             self._release_stop_signals()
+            if isinstance(self.config, NakaGSTrainerConfig):
+                self.config.release_run_folder()
 
     def _catch_stop_signals(self) -> None:
         # Handlers can only be set in the main thread; an ignored signal (nohup, `cmd &` in a script) stays ignored.
@@ -207,6 +342,7 @@ class NakaGSTrainer(Trainer):
 
     def _on_stop_signal(self, signum, frame) -> None:
         self._stop_name = "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name
+        self._stop_signum = signum
         if self._stop_step is not None or self._done_step is None:
             raise KeyboardInterrupt  # a second one, or nothing trained yet: stop now
         self._stop_step = self.step
@@ -229,7 +365,7 @@ class NakaGSTrainer(Trainer):
         self._previous_handlers = {}
 
     def _after_train(self) -> None:
-        """On Ctrl-C / SIGTERM: save the last completed step and exit 130; otherwise upstream's end of training."""
+        """On Ctrl-C / SIGTERM: save the last completed step and exit 130 / 143; otherwise upstream's end of training."""
         if self._stop_step is None:
             return super()._after_train()
         assert self._done_step is not None  # _on_stop_signal stops at once before the first step finished
@@ -249,21 +385,14 @@ class NakaGSTrainer(Trainer):
         return f"newest checkpoint of this run: {newest}" if newest else "this run saved no checkpoint"
 
     def _discard_new_run_folder(self) -> None:
-        """Remove the config.yml and the folders that ``NakaGSTrainerConfig.save_config`` created for this
+        """Remove the config.yml, the claim and the folders that ``NakaGSTrainerConfig.save_config`` created for this
         run; a folder that holds anything else (another process's run) stays."""
-        created = getattr(self.config, "_created_folders", None)
-        if not created:
-            return
-        (self.base_dir / "config.yml").unlink(missing_ok=True)
-        for folder in created:  # deepest first
-            try:
-                folder.rmdir()
-            except OSError:
-                return
+        if isinstance(self.config, NakaGSTrainerConfig):
+            self.config.release_run_folder(remove_created=True)
 
     def _exit_interrupted(self, what: str) -> NoReturn:
         CONSOLE.print(f"naka-gs: {what}", markup=False, soft_wrap=True)
-        raise SystemExit(INTERRUPTED_EXIT_CODE)
+        raise SystemExit(signal_exit_status(self._stop_signum))
 
     @check_main_thread
     def save_checkpoint(self, step: int) -> None:
@@ -454,6 +583,10 @@ class NakaGSTrainerConfig(TrainerConfig):
         ``ns-train --load-config <a run's config.yml>`` ends here too: its file fixes the run folder, so the
         refusal also says what to change in the file."""
         super().set_timestamp()
+        self._refuse_a_run_folder_in_use()
+
+    def _refuse_a_run_folder_in_use(self) -> None:
+        """Exit with one line when the run folder holds a run's config.yml that this run does not resume."""
         run = self.get_base_dir()
         if not (run / "config.yml").exists():
             return
@@ -481,13 +614,32 @@ class NakaGSTrainerConfig(TrainerConfig):
             )
         run = self.get_base_dir()
         created = [folder for folder in (run, *run.parents) if not folder.exists()]  # deepest first
+        token = None
         try:
+            run.mkdir(parents=True, exist_ok=True)
+            token = claim_run_folder(run)
+            # Checked again now that the folder is ours: a run that got there between set_timestamp and the claim.
+            self._refuse_a_run_folder_in_use()
             super().save_config()
-        except OSError as err:
-            raise SystemExit(
-                f"naka-gs: cannot write the run folder {run} ({err.strerror or err}); pick a writable --output-dir"
-            ) from None
-        self._created_folders = created  # set after the YAML dump: not a field, never in config.yml
+        except BaseException as err:
+            # Refused by another run's claim: the folders are that run's, whoever made them.
+            _give_up_run_folder(run, token, created if token is not None or isinstance(err, OSError) else [])
+            if isinstance(err, OSError):
+                raise SystemExit(
+                    f"naka-gs: cannot write the run folder {run} ({err.strerror or err}); pick a writable --output-dir"
+                ) from None
+            raise
+        # Set after the YAML dump: not fields, never in config.yml.
+        self._created_folders, self._run_claim = created, token
+
+    def release_run_folder(self, remove_created: bool = False) -> None:
+        """Give up this run's claim of its folder (:func:`claim_run_folder`); with ``remove_created`` (a setup that
+        failed), also remove the config.yml and the folders :meth:`save_config` created, unless one holds anything
+        else (another process's run)."""
+        created = self.__dict__.pop("_created_folders", None) or []
+        _give_up_run_folder(
+            self.get_base_dir(), self.__dict__.pop("_run_claim", None), created if remove_created else []
+        )
 
     def get_base_dir(self) -> Path:
         """The folder config.yml was loaded from, once ``eval_setup`` has loaded it; else upstream's

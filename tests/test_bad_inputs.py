@@ -690,7 +690,9 @@ def cache_corrupt_downscaled_copy(env):
 
 
 def _recomputed_with_warning(env, same):
-    assert same is True and "is corrupt; making it again" in env.log()
+    assert same is True and "does not match its checksum (edited or damaged since it was written); making it again" in (
+        env.log()
+    )
 
 
 def cache_corrupt_enhanced_entry(env):
@@ -710,7 +712,8 @@ def cache_corrupt_enhanced_entry(env):
 
 def _enhanced_recomputed(env, result):
     enhancer, same = result
-    assert same and enhancer.last_run["computed"] == 1 and "is corrupt; recomputing it" in env.log()
+    assert same and enhancer.last_run["computed"] == 1
+    assert "does not match its checksum (edited or damaged since it was written); recomputing it" in env.log()
 
 
 def cache_env_names_a_file(env):

@@ -43,7 +43,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 from torch import Tensor
 
-from naka_gs_plugin.data.cache import default_cache_dir
+from naka_gs_plugin.data.cache import default_cache_dir, read_sealed, seal
 from naka_gs_plugin.data.images import IMAGE_SUFFIXES, ImageReadError, read_raw, to_rgb01, write_image
 
 MAX_AUTO_RESOLUTION = 1600
@@ -112,7 +112,7 @@ def load_transforms(path: Path) -> dict:
             path, "file not found", "every lowlight-data scene needs transforms_train.json and transforms_test.json"
         )
     try:
-        meta = json.loads(path.read_text())
+        meta = json.loads(path.read_text(encoding="utf-8-sig"))  # utf-8-sig: a byte-order mark (Windows editors) too
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
         raise _fail(
             path, f"malformed json ({err})", "fix the json syntax (e.g. check with `python -m json.tool`)"
@@ -169,11 +169,33 @@ def _resolve_image(scene: Path, frame: dict, index: int, path: Path) -> Path:
             path, f"frame {index} has no usable 'file_path' ({fp!r})", "set it to the image path relative to the scene"
         )
     candidate = (scene / fp).resolve() if not Path(fp).is_absolute() else Path(fp)
+    if "\\" in fp and not candidate.exists():  # written on Windows: its separators, where the file is there that way
+        posix = scene / fp.replace("\\", "/")
+        if posix.exists():
+            return posix.resolve()
     if candidate.suffix == "" and not candidate.exists():  # Blender-style extensionless paths
         for suffix in IMAGE_SUFFIXES + tuple(s.upper() for s in IMAGE_SUFFIXES):
             if candidate.with_suffix(suffix).exists():
                 return candidate.with_suffix(suffix)
     return candidate
+
+
+def near_match(missing: Path) -> Optional[Path]:
+    """The file ``missing`` most likely meant: its name with other letter case, or its ``\\``-separated name read
+    as a path (a file_path written on Windows) with other letter case; None when there is none."""
+    names = [missing.name]
+    if "\\" in missing.name:
+        names.append(missing.name.replace("\\", "/"))
+    for name in names:
+        folder = (missing.parent / name).parent
+        want = Path(name).name.lower()
+        try:
+            found = sorted(p for p in folder.iterdir() if p.name.lower() == want and p.name != Path(name).name)
+        except OSError:
+            continue
+        if found:
+            return found[0]
+    return None
 
 
 _WARNED_PADDED: set = set()
@@ -372,9 +394,11 @@ class LowLightDataParser(DataParser):
         if split == "train" or (any(present) and not has_gt):
             missing = [p for p, ok in zip(frames.images, present) if not ok]
             if missing:
+                near = near_match(missing[0])
+                hint = f"; did you mean {near}? (file names are case-sensitive)" if near is not None else ""
                 raise _fail(
                     frames.json_path,
-                    f"image {missing[0]} not found ({len(missing)} of {len(present)} missing)",
+                    f"image {missing[0]} not found ({len(missing)} of {len(present)} missing){hint}",
                     "fix file_path or restore the images",
                 )
         if not has_gt:
@@ -464,14 +488,17 @@ def downscaled_copy(path: Path, factor: int) -> Path:
     out = folder / f"{digest}_{path.stem}.png"
     width, height = _image_size(path)
     size = (int(width / factor), int(height / factor))  # floor, as Cameras.rescale_output_resolution does
-    if out.exists():
+    data, why = read_sealed(out)
+    if data is not None:
         try:
             cached = read_raw(out)
         except ImageReadError:
             cached = None
         if cached is not None and (cached.shape[1], cached.shape[0]) == size:
             return out
-        CONSOLE.log(f"[naka-gs] warning: cached copy {out} is corrupt; making it again", markup=False)
+        why = "is corrupt"
+    if why:
+        CONSOLE.log(f"[naka-gs] warning: cached copy {out} {why}; making it again", markup=False)
     raw = read_raw(path)
     folder.mkdir(parents=True, exist_ok=True)
     # INTER_AREA = box filter for integer factors; 16-bit sources stay 16-bit (dark detail lives there).
@@ -479,7 +506,7 @@ def downscaled_copy(path: Path, factor: int) -> Path:
     scale, dtype = (255.0, np.uint8) if raw.dtype == np.uint8 else (65535.0, np.uint16)
     pixels = np.round(small[..., ::-1] * scale).astype(dtype)
     try:
-        write_image(out, pixels)
+        seal(write_image(out, pixels))
     except OSError as err:
         raise _fail(
             out,

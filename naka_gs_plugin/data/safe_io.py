@@ -9,20 +9,31 @@
 * Output folders are refused when they equal, contain or lie inside an input.
 * A cache directory that cannot be written falls back to a private temporary one, with one warning;
   it is removed when the process exits.
+* Ctrl-C or SIGTERM while a staged folder is built removes it, says so in one line and exits 130 / 143
+  (:class:`RemovedOnStop`), even in the middle of a long native call.
 """
 
 from __future__ import annotations
 
 import atexit
+import contextlib
 import json
 import os
 import secrets
 import shutil
+import signal
+import sys
 import tempfile
+import threading
+import time
 from pathlib import Path
-from typing import Callable, Dict, Iterable, List, Optional
+from typing import Callable, Dict, Iterable, Iterator, List, Optional
 
 from nerfstudio.utils.rich_utils import CONSOLE
+
+from naka_gs_plugin.errors import signal_exit_status
+
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 MARKER = ".naka-gs-output"
 """File naming the tool that wrote a folder and every file it wrote (paths relative to the folder)."""
@@ -165,6 +176,106 @@ def publish_dir(stage: Path, out: Path, tool: str, option: str, overwrite: Optio
         raise
     if trash is not None:
         shutil.rmtree(trash, ignore_errors=True)
+
+
+class RemovedOnStop:
+    """While ``stage`` (a :func:`staging_dir` of ``out``) is built: Ctrl-C or SIGTERM removes it, prints one line
+    ``<tool>: <signal>: stopped; ...`` and exits 130 / 143 at once; ``out`` is left as it was.
+
+    The work may sit in one native call for minutes (pycolmap's matching), and Python runs signal handlers only in
+    the main thread, between bytecodes: a handler would run only once that call returned. So the signal is read from
+    Python's wakeup file descriptor by a thread of ours, which does not wait for the main thread: it removes the stage
+    and ends the process (``os._exit``). The main thread, should it run Python meanwhile, waits in its handler.
+    :meth:`publishing` holds off the stop while ``out`` is replaced, so that ``out`` is complete or untouched. Outside
+    the main thread (where no handler can be set) and for a signal ignored by the caller (``nohup``) it does nothing.
+    """
+
+    def __init__(self, stage: Path, out: Path, tool: str) -> None:
+        self.stage, self.out, self.tool = stage, out, tool
+        self._existed = out.exists()
+        self._lock = threading.Lock()
+        self._publishing = False
+        self._previous: Dict[int, object] = {}
+        self._pipe: Optional[tuple] = None
+        self._old_wakeup = -1
+        self._thread: Optional[threading.Thread] = None
+
+    def __enter__(self) -> "RemovedOnStop":
+        if threading.current_thread() is not threading.main_thread():
+            return self
+        read, write = os.pipe()
+        os.set_blocking(write, False)  # required of a wakeup fd
+        self._pipe = (read, write)
+        for signum in STOP_SIGNALS:
+            if signal.getsignal(signum) != signal.SIG_IGN:
+                self._previous[signum] = signal.signal(signum, self._hold)
+        self._old_wakeup = signal.set_wakeup_fd(write, warn_on_full_buffer=False)
+        self._thread = threading.Thread(target=self._watch, args=(read,), name="naka-gs-stop", daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._pipe is None:
+            return
+        signal.set_wakeup_fd(self._old_wakeup)
+        for signum, previous in self._previous.items():
+            signal.signal(signum, previous if previous is not None else signal.SIG_DFL)  # type: ignore[arg-type]
+        read, write = self._pipe
+        os.close(write)  # the watcher reads end-of-file and returns
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+        os.close(read)
+        self._pipe, self._previous = None, {}
+
+    @contextlib.contextmanager
+    def publishing(self) -> Iterator[None]:
+        """A stop that comes while the body runs waits for it to finish (``out`` is replaced then)."""
+        with self._lock:
+            self._publishing = True
+            try:
+                yield
+            finally:
+                self._publishing = False
+
+    def _hold(self, signum: int, frame: object) -> None:
+        # The watcher thread handles the stop; the main thread only stops doing work (unless it is publishing, which
+        # the watcher waits for).
+        if self._publishing:
+            return
+        while True:
+            time.sleep(60.0)
+
+    def _watch(self, read: int) -> None:
+        while True:
+            try:
+                data = os.read(read, 64)
+            except OSError:
+                return
+            if not data:
+                return
+            for signum in data:
+                if signum in self._previous:
+                    self._stop(signum)
+
+    def _stop(self, signum: int) -> None:
+        with self._lock:
+            name = "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name
+            if self.stage.exists():
+                shutil.rmtree(self.stage, ignore_errors=True)
+                kept = "was left as it was" if self._existed else "was not created"
+                what = f"its unfinished output was removed and {self.out} {kept}; run it again to make it"
+            else:
+                what = f"{self.out} was complete already"
+            line = f"{self.tool}: {name}: stopped; {what}\n"
+            try:
+                # Not through the console: the main thread may be waiting in _hold holding its lock (a signal handler
+                # runs between any two bytecodes). A progress bar hides the cursor on a terminal: show it again.
+                sys.stdout.flush()
+                if sys.stdout.isatty():
+                    line = "\x1b[?25h\n" + line
+                os.write(sys.stdout.fileno(), line.encode())
+            finally:
+                os._exit(signal_exit_status(signum))
 
 
 _fallback: Dict[Path, Path] = {}

@@ -159,7 +159,7 @@ def lom_pairs(scene: Path, split: str) -> List[Pair]:
     if not meta.is_file():
         raise FileNotFoundError(f"{meta} not found: expected a lowlight-data scene with low/ and high/")
     pairs = []
-    for frame in json.loads(meta.read_text())["frames"]:
+    for frame in json.loads(meta.read_text(encoding="utf-8-sig"))["frames"]:
         name = Path(frame["file_path"]).name
         low, high = scene / "low" / name, scene / "high" / name
         for p in (low, high):

@@ -13,6 +13,7 @@ float in [0, 1]; output ``float32`` in [0, 1].
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import time
 from dataclasses import dataclass, field
@@ -28,7 +29,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 
 from naka_gs_plugin.cpu import fit_threads, reclaim_core
-from naka_gs_plugin.data.cache import content_hash, default_cache_dir
+from naka_gs_plugin.data.cache import content_hash, default_cache_dir, read_sealed, seal
 from naka_gs_plugin.data.safe_io import atomic_write
 from naka_gs_plugin.enhance.chroma import DEFAULT_BLUR
 from naka_gs_plugin.enhance.correction import (
@@ -255,23 +256,36 @@ class Enhancer:
             scene = hashlib.sha1("".join(sorted(hashes)).encode()).hexdigest()
         return [hashlib.sha1(f"{params}|{h}|{scene}".encode()).hexdigest() for h in hashes]
 
-    def _read(self, key: str, like: Tensor) -> Optional[Tensor]:
-        """The cached enhancement of ``like`` (an input image), or None: a miss, or a corrupt entry
-        (warned; it is recomputed and replaced)."""
+    def _read(self, key: str, like: Tensor, bad: Dict[str, List[Path]]) -> Optional[Tensor]:
+        """The cached enhancement of ``like`` (an input image), or None: a miss, or an entry that cannot be used
+        (added to ``bad`` under the reason; it is recomputed and replaced)."""
         if self.cache_dir is None:
             return None
         path = self.cache_dir / f"{key}.npy"
-        if not path.exists():
+        data, why = read_sealed(path)
+        if data is None:
+            if why:
+                bad.setdefault(why, []).append(path)
             return None
         try:
-            arr = np.load(path)
+            arr = np.load(io.BytesIO(data))
             ok = arr.dtype == np.uint16 and arr.shape == (*like.shape[:2], 3)
         except (OSError, ValueError, EOFError):
             ok = False
         if not ok:
-            CONSOLE.log(f"[naka-gs] warning: cache entry {path} is corrupt; recomputing it", markup=False)
+            bad.setdefault("is corrupt", []).append(path)
             return None
         return torch.from_numpy(arr.astype(np.float32) / 65535.0)
+
+    @staticmethod
+    def _warn_bad_entries(bad: Dict[str, List[Path]]) -> None:
+        """One line per reason naming the entries that are recomputed (the first of many)."""
+        for why, paths in bad.items():
+            if len(paths) == 1:
+                line = f"cache entry {paths[0]} {why}; recomputing it"
+            else:
+                line = f"cache entry {paths[0]} and {len(paths) - 1} more: each {why}; recomputing them"
+            CONSOLE.log(f"[naka-gs] warning: {line}", markup=False)
 
     def _write(self, key: str, image: Tensor) -> None:
         """Store ``image`` atomically; a failed write (disk full, permissions) warns once and the run goes on."""
@@ -282,7 +296,7 @@ class Enhancer:
         arr = (image.detach().cpu().clamp(0, 1).numpy() * 65535.0).round().astype(np.uint16)
         try:
             self.cache_dir.mkdir(parents=True, exist_ok=True)
-            atomic_write(self.cache_dir / f"{key}.npy", lambda tmp: np.save(tmp, arr))
+            seal(atomic_write(self.cache_dir / f"{key}.npy", lambda tmp: np.save(tmp, arr)))
         except OSError as err:
             if not self._cache_warned:
                 CONSOLE.log(f"[naka-gs] warning: not caching enhanced images ({err})", markup=False)
@@ -300,7 +314,9 @@ class Enhancer:
             self.last_run = {"computed": 0, "cached": 0, "seconds": 0.0}
             return [to_float01(im) for im in images]
         keys = self._keys(images)
-        out: List[Optional[Tensor]] = [self._read(k, im) for k, im in zip(keys, images)]
+        bad: Dict[str, List[Path]] = {}
+        out: List[Optional[Tensor]] = [self._read(k, im, bad) for k, im in zip(keys, images)]
+        self._warn_bad_entries(bad)
         todo = [i for i, o in enumerate(out) if o is None]
         seconds: Dict[str, float] = {stage.name: 0.0 for stage in self.view_stages}
         if todo:

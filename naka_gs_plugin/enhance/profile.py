@@ -66,7 +66,7 @@ class CameraProfile:
         """Read ``path``; a missing or damaged file raises one line naming ``option`` and the fix."""
         fix = f"pass {option} the .json file naka-gs-calibrate wrote, or leave {option} out"
         try:
-            data = json.loads(Path(path).read_text())
+            data = json.loads(Path(path).read_text(encoding="utf-8-sig"))
         except FileNotFoundError:
             raise CameraProfileError(f"{option} {path}: no such file -- {fix}") from None
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:

@@ -11,6 +11,7 @@ takes the points into the training frame, where PPM's voxel size and tau are def
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import time
 from dataclasses import asdict, dataclass
@@ -23,13 +24,14 @@ import tyro
 from jaxtyping import Float, UInt8
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from naka_gs_plugin.data.cache import default_cache_dir
+from naka_gs_plugin.data.cache import default_cache_dir, read_sealed, seal
 from naka_gs_plugin.data.lowlight_dataparser import (
     LowLightDataParserConfig,
     normalization,
     read_split,
     to_normalized_frame,
 )
+from naka_gs_plugin.data.safe_io import atomic_write
 from naka_gs_plugin.points.align import AlignmentError, apply_sim3, match_names, umeyama
 from naka_gs_plugin.points.ppm import BETA, ITERATIONS, MIN_POINTS, SEED, TAU0, VOXEL, run_ppm
 from naka_gs_plugin.points.sources import PointCloud, PointSourceError, find_scene_source, load_points, source_files
@@ -289,26 +291,32 @@ def cache_path(key: str) -> Path:
 
 
 def read_cache(key: str) -> Optional[Tuple[np.ndarray, Optional[np.ndarray], Dict[str, Any]]]:
+    """The cached cloud of ``key``, or None: a miss, or an entry that cannot be used (one line; recomputed)."""
     path = cache_path(key)
-    if not path.is_file():
-        return None
-    try:
-        with np.load(path) as data:
-            rgb = data["rgb"] if bool(data["has_rgb"]) else None
-            return data["xyz"], rgb, json.loads(str(data["summary"]))
-    except (OSError, ValueError, KeyError):  # truncated or foreign file: recompute
-        return None
+    data, why = read_sealed(path)
+    if data is not None:
+        try:
+            with np.load(io.BytesIO(data)) as arrays:
+                rgb = arrays["rgb"] if bool(arrays["has_rgb"]) else None
+                return arrays["xyz"], rgb, json.loads(str(arrays["summary"]))
+        except (OSError, ValueError, KeyError):  # a foreign file sealed as ours
+            why = "is corrupt"
+    if why:
+        CONSOLE.log(f"[naka-gs] warning: cache entry {path} {why}; recomputing it", markup=False)
+    return None
 
 
 def write_cache(key: str, xyz: np.ndarray, rgb: Optional[np.ndarray], summary: Dict[str, Any]) -> Path:
     path = cache_path(key)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp.npz")
-    np.savez(
-        tmp, xyz=xyz, rgb=rgb if rgb is not None else np.zeros((0, 3), np.uint8), has_rgb=rgb is not None,
-        summary=json.dumps(summary),
-    )  # fmt: skip
-    tmp.replace(path)
+    empty = np.zeros((0, 3), np.uint8)
+
+    def write(tmp: Path) -> None:
+        np.savez(
+            tmp, xyz=xyz, rgb=rgb if rgb is not None else empty, has_rgb=rgb is not None, summary=json.dumps(summary)
+        )
+
+    seal(atomic_write(path, write))
     return path
 
 

@@ -121,7 +121,7 @@ def load_ply(path: Path, cameras: Optional[Dict[str, np.ndarray]] = None) -> Poi
 def read_cameras_json(path: Path) -> Dict[str, np.ndarray]:
     """``{"image name": [x, y, z], ...}`` -> name -> centre (the simulator's ``points_cameras.json``)."""
     try:
-        data = json.loads(Path(path).read_text())
+        data = json.loads(Path(path).read_text(encoding="utf-8-sig"))
         cams = {str(k): np.asarray(v, dtype=np.float64).reshape(3) for k, v in data.items()}
     except (json.JSONDecodeError, AttributeError, TypeError, ValueError) as err:
         raise PointSourceError(

@@ -14,14 +14,16 @@ the result is written as a ``lowlight-data`` scene that references the **origina
 Poses stay in COLMAP's world frame (no re-orientation: the dataparser normalizes), so the sparse
 points and the transforms share one frame. The held-out views carry low-light images, not
 normal-light truth. Everything is staged in a hidden sibling folder and moved into place only when
-at least 3 images registered: a failed run leaves nothing behind. The scene's ``.naka-gs-output``
-marker lists its files; ``--overwrite`` replaces only such a folder holding nothing else, and an
---output-dir equal to, inside or containing --data is refused.
+at least 3 images registered: a failed run leaves nothing behind, and Ctrl-C or SIGTERM removes it and exits
+130 / 143, even inside pycolmap. The scene's ``.naka-gs-output`` marker lists its files; ``--overwrite`` replaces
+only such a folder holding nothing else, and an --output-dir equal to, inside or containing --data is refused.
+Byte-identical copies among the photos are refused before any work; every long stage shows its progress.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import re
 import shutil
@@ -41,6 +43,7 @@ from rich.table import Table
 
 from naka_gs_plugin.data.images import IMAGE_SUFFIXES, ImageReadError, read_rgb, write_image
 from naka_gs_plugin.data.safe_io import (
+    RemovedOnStop,
     UnsafeOutputError,
     check_not_input,
     check_replaceable,
@@ -54,13 +57,14 @@ from naka_gs_plugin.points.sfm import (
     MatchingMethod,
     SfMError,
     c2w_opencv_of,
+    database_progress,
     database_stats,
     extract_features,
     incremental_mapping,
     match_features,
     quiet_colmap,
 )
-from naka_gs_plugin.progress import StageProgress
+from naka_gs_plugin.progress import StageProgress, progress_from
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v")
 MIN_REGISTERED = 3
@@ -100,6 +104,34 @@ def list_images(folder: Path) -> List[Path]:
         (p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES),
         key=lambda p: natural_key(p.name),
     )
+
+
+def refuse_duplicates(sources: Sequence[Path]) -> None:
+    """Refuse photos that are byte-identical copies of one another (by content hash, with progress): structure from
+    motion cannot place two copies of one view, and pycolmap spends minutes matching them before it fails."""
+    seen: Dict[str, Path] = {}
+    copies: List[Tuple[Path, Path]] = []
+    with StageProgress() as progress:
+        task = progress.add_task("Checking the photos for copies", total=len(sources))
+        for path in sources:
+            digest = hashlib.sha256()
+            try:
+                with open(path, "rb") as fh:
+                    for block in iter(lambda: fh.read(1 << 20), b""):
+                        digest.update(block)
+            except OSError as err:
+                raise ProcessDataError(f"{path}: cannot be read ({err.strerror or err}) -- restore it or move it out")
+            first = seen.setdefault(digest.hexdigest(), path)
+            if first is not path:
+                copies.append((first, path))
+            progress.advance(task)
+    if copies:
+        first, copy = copies[0]
+        more = f" ({len(copies)} copies in all)" if len(copies) > 1 else ""
+        raise ProcessDataError(
+            f"{copy} is an identical copy of {first}{more} -- structure from motion needs photos from different "
+            f"viewpoints: keep one of each and move the copies out of {first.parent}"
+        )
 
 
 def extract_video_frames(video: Path, out: Path, fps: float) -> List[Path]:
@@ -175,8 +207,10 @@ class ProcessData:
         out = self.output_dir.resolve()
         stage = staging_dir(out)
         try:
-            report = self._process(stage)
-            publish_dir(stage, out, "naka-gs-process-data", "--output-dir", self.overwrite)
+            with RemovedOnStop(stage, out, "naka-gs-process-data") as stop:
+                report = self._process(stage)
+                with stop.publishing():
+                    publish_dir(stage, out, "naka-gs-process-data", "--output-dir", self.overwrite)
         except UnsafeOutputError as err:
             raise ProcessDataError(str(err)) from None
         finally:
@@ -214,6 +248,7 @@ class ProcessData:
             t0 = time.perf_counter()
         else:
             sources = list_images(self.data)
+            refuse_duplicates(sources)
         if len(sources) < MIN_REGISTERED:
             raise ProcessDataError(
                 f"{self.data}: {len(sources)} image(s) found ({', '.join(IMAGE_SUFFIXES)}) -- "
@@ -227,15 +262,21 @@ class ProcessData:
         database = work / "database.db"
         with quiet_colmap():
             t0 = time.perf_counter()
-            with CONSOLE.status(f"[bold]SIFT features of {len(names)} images"):
-                extract_features(
-                    database, enhanced_dir, sfm_names, pycolmap.CameraMode.SINGLE, self.camera_model,
-                    self.max_image_size,
-                )  # fmt: skip
+            with StageProgress() as progress:
+                task = progress.add_task(f"SIFT features (images of {len(names)})", total=len(names))
+                with progress_from(progress, task, lambda: database_progress(database)["images_with_keypoints"]):
+                    extract_features(
+                        database, enhanced_dir, sfm_names, pycolmap.CameraMode.SINGLE, self.camera_model,
+                        self.max_image_size,
+                    )  # fmt: skip
             seconds["extract"] = time.perf_counter() - t0
             t0 = time.perf_counter()
-            with CONSOLE.status(f"[bold]{self.matching_method} matching"):
-                match_features(database, self.matching_method, self.sequential_overlap)
+            # Exhaustive: every pair; sequential: COLMAP's pairs are not known ahead, so the count alone.
+            pairs = len(names) * (len(names) - 1) // 2 if self.matching_method == "exhaustive" else None
+            with StageProgress() as progress:
+                task = progress.add_task(f"{self.matching_method} matching (image pairs)", total=pairs)
+                with progress_from(progress, task, lambda: database_progress(database)["matched_pairs"]):
+                    match_features(database, self.matching_method, self.sequential_overlap)
             seconds["match"] = time.perf_counter() - t0
             stats = database_stats(database)
             t0 = time.perf_counter()

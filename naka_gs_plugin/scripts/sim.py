@@ -6,7 +6,8 @@ directory: run from the repository root. Spec errors print one line and exit wit
 The scene is generated in a hidden sibling of --out and moved into place when complete. An
 existing non-empty --out is replaced only if it holds nothing but an earlier naka-gs-sim scene
 (its ``.naka-gs-output`` marker lists the files), so no stale file of another scene survives;
---out may not be, contain or lie inside the spec file or the captured scene it darkens.
+--out may not be, contain or lie inside the spec file or the captured scene it darkens. Ctrl-C or SIGTERM
+removes the unfinished scene and exits 130 / 143.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import tyro
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from naka_gs_plugin.data.safe_io import (
+    RemovedOnStop,
     UnsafeOutputError,
     check_not_input,
     check_replaceable,
@@ -53,8 +55,10 @@ class Sim:
         out = self.out.resolve()
         stage = staging_dir(out)
         try:
-            generate(spec, stage, seed=self.seed)
-            publish_dir(stage, out, "naka-gs-sim", "--out", None)
+            with RemovedOnStop(stage, out, "naka-gs-sim") as stop:
+                generate(spec, stage, seed=self.seed)
+                with stop.publishing():
+                    publish_dir(stage, out, "naka-gs-sim", "--out", None)
         finally:
             shutil.rmtree(stage, ignore_errors=True)  # our own staging folder; gone already once published
         CONSOLE.log(f"naka-gs-sim: scene ready in {self.out}", markup=False)

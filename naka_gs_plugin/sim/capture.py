@@ -53,10 +53,10 @@ class CaptureScene:
     def __init__(self, source: CaptureSource, spec_path: Path):
         self.source = source
         self.scene = source.path
-        self.meta = json.loads((self.scene / "transforms_train.json").read_text())
+        self.meta = json.loads((self.scene / "transforms_train.json").read_text(encoding="utf-8-sig"))
         self.views: List[View] = []
         for split, n in (("train", source.n_train), ("test", source.n_test)):
-            frames = json.loads((self.scene / f"transforms_{split}.json").read_text())["frames"]
+            frames = json.loads((self.scene / f"transforms_{split}.json").read_text(encoding="utf-8-sig"))["frames"]
             if n > len(frames):
                 raise SimSpecError(
                     f"{spec_path}: field 'source.capture.n_{split}': {n} views asked, "

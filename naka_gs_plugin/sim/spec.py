@@ -284,6 +284,41 @@ class _Reader:
         return kind(raw)
 
 
+MAX_VIEWS = 2000
+"""Most views (train + test) a spec may ask for: simulated scenes need tens to a few hundred; more is a typo."""
+MAX_SIDE = 8192
+"""Largest procedural image width or height, pixels."""
+MAX_OUTPUT_GB = 16.0
+"""Largest scene a procedural spec may write, in GB of uncompressed image data (PNG saves a part of it)."""
+
+
+def _check_plausible(reader: "_Reader", kind: str, source: Union[ProceduralSource, CaptureSource]) -> None:
+    """Refuse view counts and sizes no scene needs, before minutes of work and gigabytes of files (one line each)."""
+    views = source.n_train + source.n_test
+    if views > MAX_VIEWS:
+        field_ = "n_train" if source.n_train >= source.n_test else "n_test"
+        raise reader.fail(
+            f"source.{kind}.{field_}",
+            f"{source.n_train} training + {source.n_test} test views is over the limit of {MAX_VIEWS} -- "
+            "a simulated scene needs tens to a few hundred views: lower n_train / n_test",
+        )
+    if not isinstance(source, ProceduralSource):
+        return  # a capture's views are its images: their number and size are the capture's
+    for side in ("width", "height"):
+        if getattr(source, side) > MAX_SIDE:
+            raise reader.fail(
+                f"source.{kind}.{side}", f"{getattr(source, side)} px is over the limit of {MAX_SIDE} -- lower it"
+            )
+    # Each training view writes its degraded image and its truth, each test view its truth; 16-bit RGB at most.
+    gigabytes = (2 * source.n_train + source.n_test) * source.width * source.height * 3 * 2 / 1e9
+    if gigabytes > MAX_OUTPUT_GB:
+        raise reader.fail(
+            f"source.{kind}",
+            f"{views} views of {source.width}x{source.height} would write about {gigabytes:.0f} GB of images, over "
+            f"the limit of {MAX_OUTPUT_GB:.0f} GB -- lower n_train, n_test, width or height",
+        )
+
+
 def parse_spec(data: Any, path: Path) -> SceneSpec:
     """Validate a spec mapping (as read from ``path``, which only names the file in errors)."""
     reader = _Reader(path)
@@ -312,6 +347,8 @@ def parse_spec(data: Any, path: Path) -> SceneSpec:
             raise reader.fail(
                 "source.capture.path", f"no capture at {source.path.resolve()} (needs transforms_train.json)"
             )
+
+    _check_plausible(reader, kind, source)
 
     effects_data = data.get("effects", [])
     if not isinstance(effects_data, list):
