@@ -1,5 +1,10 @@
-"""Every command in README.md and docs/*.md names a console script (or a ``python -m benchmarks.<name>``) that
-exists and options its ``--help`` lists."""
+"""The docs stay true: every command in README.md and the guides (docs/*.md) names a console script (or a
+``python -m benchmarks.<name>``) that exists and options its ``--help`` lists; every figure in the README's tables
+links the record it comes from (docs/records/), which exists and is headed by its question, answer, command, commit
+and machine; the README and the guides stay short; every relative link resolves.
+
+The records are history: their commands ran on the tree of their date, so they are not checked against today's
+``--help``."""
 
 from __future__ import annotations
 
@@ -16,6 +21,10 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+"""README and the guides (the records in docs/records/ are history, see the module's docstring)."""
+RECORDS = ROOT / "docs" / "records"
+README_MAX_LINES, GUIDE_MAX_LINES = 200, 300
+HEADER_FIELDS = ("Question", "Answer", "Command", "Commit", "Machine")
 PROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
 SCRIPTS = PROJECT["scripts"]
 METHODS = PROJECT["entry-points"]["nerfstudio.method_configs"]
@@ -114,3 +123,100 @@ def test_doc_command_parses(where, script, words):
     known = help_options(argv) if options else frozenset()
     unknown = [option for option in options if option not in known]
     assert not unknown, f"{where}: `{' '.join(argv)}` has no option {', '.join(unknown)} (see its --help)"
+
+
+LINK = re.compile(r"\[[^\]]*\]\(([^)\s]+)\)")
+TABLE_ROW = re.compile(r"^\|(?!\s*-{3})(.*)\|\s*$")
+COMMIT = re.compile(r"`[0-9a-f]{7,40}`")
+MACHINE = re.compile(r"\b(AMD|Intel|NVIDIA|Apple|ARM|Ampere|Graviton)\b")
+
+
+def record_files() -> List[Path]:
+    return sorted(p for p in RECORDS.glob("*.md") if p.name != "README.md")
+
+
+def figure_rows(text: str) -> List[Tuple[int, str]]:
+    """``(line, row)`` of each table row holding a digit, header rows and fenced blocks left out."""
+    prose = FENCE.sub(lambda m: "\n" * m.group(0).count("\n"), text)
+    lines = prose.splitlines()
+    rows = []
+    for i, line in enumerate(lines):
+        if not TABLE_ROW.match(line) or not re.search(r"\d", line):
+            continue
+        if i + 1 < len(lines) and re.match(r"^\|\s*-{3}", lines[i + 1]):
+            continue  # a header row
+        rows.append((i + 1, line))
+    return rows
+
+
+def test_readme_figures_link_an_existing_record_with_commit_and_machine():
+    """Each README table row with a number links a record file in docs/records/ that exists; a row of ours (not a
+    published figure) also names the commit and the machine of its run."""
+    rows = figure_rows((ROOT / "README.md").read_text())
+    assert len(rows) >= 5, rows  # the results tables are found
+    for line, row in rows:
+        records = [t for t in LINK.findall(row) if t.split("#")[0].startswith("docs/records/")]
+        assert records, f"README.md:{line}: a figure without a link to its record in docs/records/: {row}"
+        for target in records:
+            path = ROOT / target.split("#")[0]
+            assert path.is_file() and path.suffix == ".md", f"README.md:{line}: no record {target}"
+        if "published" not in row:
+            assert COMMIT.search(row), f"README.md:{line}: the row names no commit (`abc1234`): {row}"
+            assert MACHINE.search(row), f"README.md:{line}: the row names no machine: {row}"
+
+
+def test_figure_rows_detects_a_row_without_its_record():
+    """The check above sees a bare figure row, and the header and separator rows are not figures."""
+    text = "| | PSNR |\n|---|---|\n| naka-gs 2026 | 23.30 |\n| x | 1 [r](docs/records/a.md) |\n"
+    rows = figure_rows(text)
+    assert [line for line, _ in rows] == [3, 4]
+    assert not [t for t in LINK.findall(rows[0][1]) if t.startswith("docs/records/")]
+
+
+def test_readme_and_guides_stay_short():
+    """A README read in five minutes, guides at most a few pages; the records hold the history."""
+    readme = (ROOT / "README.md").read_text().splitlines()
+    assert len(readme) <= README_MAX_LINES, f"README.md has {len(readme)} lines (at most {README_MAX_LINES})"
+    guides = sorted((ROOT / "docs").glob("*.md"))
+    assert {"design.md", "cpu.md", "cuda.md", "real-scenes.md"} <= {p.name for p in guides}
+    for path in guides:
+        n = len(path.read_text().splitlines())
+        assert n <= GUIDE_MAX_LINES, f"{path.relative_to(ROOT)} has {n} lines (at most {GUIDE_MAX_LINES})"
+
+
+@pytest.mark.parametrize("path", record_files(), ids=[p.name for p in record_files()])
+def test_record_is_headed_by_its_question_answer_command_commit_and_machine(path):
+    """Each record opens with a title and the five fields, each non-empty, in this order, and is in the index."""
+    lines = path.read_text().splitlines()
+    assert lines[0].startswith("# "), f"{path.name}: no title"
+    fields = [re.match(r"^- \*\*(\w+)\*\*: (\S.*)$", line) for line in lines[1:12]]
+    found = [m.group(1) for m in fields if m]
+    assert tuple(found) == HEADER_FIELDS, f"{path.name}: header fields {found}, expected {list(HEADER_FIELDS)}"
+    assert re.match(r"^\d{4}-\d{2}-\d{2}-[a-z0-9-]+\.md$", path.name), f"{path.name}: not YYYY-MM-DD-topic.md"
+    assert f"({path.name})" in (RECORDS / "README.md").read_text(), f"{path.name} is not listed in records/README.md"
+
+
+def slug(heading: str) -> str:
+    """GitHub's anchor for a heading."""
+    return re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
+
+
+def test_relative_links_resolve():
+    """Every relative link in README.md and docs/**/*.md names a file that exists (and a heading of it, if an
+    anchor is given): moved text keeps its images, experiments and records."""
+    broken = []
+    for path in [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]:
+        prose = FENCE.sub("", path.read_text())
+        for target in LINK.findall(prose):
+            if re.match(r"[a-z][a-z+.-]*:", target):
+                continue
+            file, _, anchor = target.partition("#")
+            dest = (path.parent / file).resolve() if file else path
+            where = f"{path.relative_to(ROOT)}: {target}"
+            if not dest.exists():
+                broken.append(f"{where} (no such file)")
+            elif anchor and dest.suffix == ".md":
+                heads = {slug(h) for h in re.findall(r"^#+ (.*)$", dest.read_text(), re.M)}
+                if anchor not in heads:
+                    broken.append(f"{where} (no such heading)")
+    assert not broken, "broken links:\n" + "\n".join(broken)
