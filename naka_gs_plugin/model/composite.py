@@ -21,6 +21,13 @@ from torch import Tensor
 from naka_gs_plugin.cpu import numba_fast_path
 
 
+def clamp01(x: Tensor) -> Tensor:
+    """``torch.clamp(x, 0, 1)``, its gradient passed strictly inside (``0 < x < 1``) and neither at a bound nor for
+    NaN. torch's own clamp has changed its rule at an exact bound between releases (2.1 passes the gradient there,
+    2.14 does not); one explicit rule keeps the reference and the compiled kernels equal on every supported torch."""
+    return torch.where((x > 0) & (x < 1), x, x.detach().clamp(0.0, 1.0))
+
+
 def composite_torch(
     render: Float[Tensor, "*batch H W 3"],
     alpha: Float[Tensor, "*batch H W 1"],
@@ -30,9 +37,9 @@ def composite_torch(
 ) -> Float[Tensor, "*batch H W 3"]:
     """``clamp(render + (1 - alpha) * background, 0, 1)``, then with ``gain`` and ``offset`` (a view's
     appearance) ``clamp(rgb * gain + offset, 0, 1)``."""
-    rgb = torch.clamp(render + (1 - alpha) * background, 0.0, 1.0)
+    rgb = clamp01(render + (1 - alpha) * background)
     if gain is not None:
-        rgb = torch.clamp(rgb * gain + offset, 0.0, 1.0)
+        rgb = clamp01(rgb * gain + offset)
     return rgb
 
 
