@@ -542,6 +542,10 @@ def test_resuming_puts_back_the_random_state_view_order_and_densification_statis
     strategy = resumed.pipeline.model.strategy_state
     assert strategy["grad2d"] is not None and set(strategy) == set(short_run.strategy)
     _assert_identical(strategy, short_run.strategy, "strategy_state")
+    # Statistics of another number of Gaussians are refused, changing nothing.
+    other = {k: v[:-1] if isinstance(v, torch.Tensor) else v for k, v in short_run.strategy.items()}
+    assert resumed.pipeline.model.load_resume_state({"strategy": other}) is False
+    _assert_identical(strategy, short_run.strategy, "strategy_state")
 
 
 def test_a_checkpoint_without_the_resume_state_resumes_with_one_line(short_run, toy_scene, tmp_path, capsys):
