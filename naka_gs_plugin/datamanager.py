@@ -13,9 +13,10 @@ user errors: an image found unreadable there is the same one ``naka-gs:`` line (
 
 from __future__ import annotations
 
+import random
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List, Literal, Tuple, Type, Union
+from typing import Any, Dict, List, Literal, Tuple, Type, Union
 
 import cv2
 import numpy as np
@@ -149,6 +150,52 @@ class LowLightDatamanager(FullImageDatamanager[LowLightDataset]):
         self.has_ground_truth = bool(self.eval_dataset)
         if not self.has_ground_truth:
             self.eval_unseen_cameras = []
+
+    def resume_state(self) -> Dict[str, Any]:
+        """Where training is in its view order, which nerfstudio keeps outside any ``state_dict``: the training views
+        still to serve this round, what picks the next round (the shuffling generator with ``random`` sampling, the
+        views' unsampled-round counts with ``fps``) and the test views not yet evaluated this round. Plain lists and
+        tuples, which ``torch.load(weights_only=True)`` reads (:meth:`load_resume_state` puts them back)."""
+        state: Dict[str, Any] = {
+            "train_unseen_cameras": [int(i) for i in self.train_unseen_cameras],
+            "eval_unseen_cameras": [int(i) for i in self.eval_unseen_cameras],
+        }
+        if hasattr(self, "random_generator"):
+            state["random_generator"] = self.random_generator.getstate()
+        if hasattr(self, "train_unsampled_epoch_count"):
+            state["train_unsampled_epoch_count"] = self.train_unsampled_epoch_count.tolist()
+        return state
+
+    def load_resume_state(self, state: Dict[str, Any]) -> bool:
+        """Continue the view order :meth:`resume_state` saved; False, changing nothing, when it does not fit this
+        scene's views or this sampling strategy."""
+        n_train, n_eval = len(self.train_dataset), len(self.eval_dataset)
+
+        def views(key: str, n: int) -> bool:
+            indices = state.get(key)
+            return isinstance(indices, list) and all(type(i) is int and 0 <= i < n for i in indices)
+
+        if not (
+            views("train_unseen_cameras", n_train)
+            and state["train_unseen_cameras"]
+            and views("eval_unseen_cameras", n_eval)
+        ):
+            return False
+        if self.config.train_cameras_sampling_strategy == "random":
+            generator = random.Random()
+            try:
+                generator.setstate(state["random_generator"])
+            except (KeyError, TypeError, ValueError):
+                return False
+            self.random_generator = generator
+        else:
+            counts = state.get("train_unsampled_epoch_count")
+            if not isinstance(counts, list) or len(counts) != n_train:
+                return False
+            self.train_unsampled_epoch_count = np.array(counts, dtype=np.float64)
+        self.train_unseen_cameras = list(state["train_unseen_cameras"])
+        self.eval_unseen_cameras = list(state["eval_unseen_cameras"])
+        return True
 
     def load_unenhanced_train(self) -> List[Dict[str, torch.Tensor]]:
         """The training images as training loads them, before enhancement: full bit depth, downscaled,

@@ -5,7 +5,12 @@
   write cut short (full disk, kill) never replaces or poses as a valid ``step-*.ckpt``.
 - ``--load-dir`` / ``--load-checkpoint`` skip a corrupt or truncated checkpoint for the newest valid
   older one, and fail with one line naming the folder when none is valid.
-- SIGTERM is handled as Ctrl-C, exiting 143 (128 + the signal, the shells' convention); either one before the first training step has finished (while the
+- A checkpoint also holds what upstream's leaves out of a run's state (:data:`RESUME_STATE`: the random generators,
+  the datamanager's place in its view order, the densification statistics), so a run resumed from it, after a
+  ``kill -9`` too, continues as it would have uninterrupted: on a CPU it ends with the same model bit for bit. A
+  checkpoint without them (an older version's) resumes with one line saying that the continuation is not exact.
+- SIGTERM is handled as Ctrl-C, exiting 143 (128 + the signal, the shells' convention); either one before the first
+  training step has finished (while the
   training images load and are enhanced, which can take minutes) stops at once, nothing to save.
 - With ``--vis tensorboard``, the scalars nerfstudio records at every step (iteration time, ETA, rays per second,
   learning rates) are written at the steps it logs the losses at (:class:`LoggedStepsTensorboardWriter`).
@@ -29,6 +34,7 @@ from __future__ import annotations
 import atexit
 import json
 import os
+import random
 import re
 import secrets
 import signal
@@ -41,9 +47,10 @@ from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
 from types import FrameType
-from typing import List, Literal, NoReturn, Optional, Sequence, Set, Type, Union
+from typing import Any, Dict, List, Literal, NoReturn, Optional, Sequence, Set, Type, Union
 from unittest import mock
 
+import numpy as np
 import torch
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
@@ -61,6 +68,11 @@ CHECKPOINT_NAME = re.compile(r"step-(\d+)\.ckpt")
 # first "."]) and take the largest (eval_utils.eval_load_checkpoint). A temporary file left by a kill
 # therefore has to parse, and to step 0, so that it never outranks a real checkpoint.
 PARTIAL_PREFIX = "tmp-0."
+RESUME_STATE = "naka_gs_resume"
+"""The checkpoint's entry for what an exact continuation needs besides upstream's model, optimizers, schedulers and
+gradient scaler: the random generators, the datamanager's place in its view order, the model's densification
+statistics. ``ns-eval`` & co. read only ``pipeline``; checkpoints of older versions have no such entry."""
+RESUMED_PARTS = {"random": "random state", "datamanager": "view order", "model": "densification statistics"}
 PER_STEP_SCALARS = frozenset(
     event.value
     for event in (writer.EventName.ITER_TRAIN_TIME, writer.EventName.ETA, writer.EventName.TRAIN_RAYS_PER_SEC)
@@ -113,6 +125,48 @@ def first_valid_checkpoint(candidates: Sequence[Path], folder: Path, verb: str) 
                 )
             return path
     return None
+
+
+def random_state() -> Dict[str, Any]:
+    """The global random generators' states: Python's, numpy's, torch's CPU one and, once CUDA is in use, its
+    devices'. Plain values and tensors, which ``torch.load(weights_only=True)`` reads."""
+    numpy = np.random.get_state(legacy=False)
+    state: Dict[str, Any] = {
+        "python": random.getstate(),
+        "numpy": {
+            "key": numpy["state"]["key"].tolist(),
+            "pos": int(numpy["state"]["pos"]),
+            "has_gauss": int(numpy["has_gauss"]),
+            "gauss": float(numpy["gauss"]),
+        },
+        "torch": torch.get_rng_state(),
+    }
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def set_random_state(state: Dict[str, Any]) -> bool:
+    """Put back :func:`random_state`'s generators (CUDA's where this machine has as many devices); False, changing
+    nothing, when ``state`` is not such a state."""
+    # Each state is checked on a generator of its own before any global one changes.
+    python, numpy, torch_cpu = random.Random(), np.random.RandomState(), torch.Generator()
+    try:
+        python.setstate(state["python"])
+        saved = state["numpy"]
+        key = np.array(saved["key"], dtype=np.uint32)
+        numpy.set_state({"bit_generator": "MT19937", "state": {"key": key, "pos": saved["pos"]},
+                         "has_gauss": saved["has_gauss"], "gauss": saved["gauss"]})  # fmt: skip
+        torch_cpu.set_state(state["torch"])
+    except (KeyError, TypeError, ValueError, RuntimeError):
+        return False
+    random.setstate(python.getstate())
+    np.random.set_state(numpy.get_state())
+    torch.set_rng_state(torch_cpu.get_state())
+    cuda = state.get("cuda")
+    if cuda is not None and torch.cuda.is_available() and len(cuda) == torch.cuda.device_count():
+        torch.cuda.set_rng_state_all(cuda)
+    return True
 
 
 def _fsync_dir(folder: Path) -> None:
@@ -396,12 +450,12 @@ class NakaGSTrainer(Trainer):
 
     @check_main_thread
     def save_checkpoint(self, step: int) -> None:
-        """Upstream's checkpoint, written to ``tmp-0.<pid>-<random>.<name>.partial`` and published with
-        ``os.replace``; older checkpoints are deleted (when only the latest is kept) only after that."""
+        """Upstream's checkpoint plus :data:`RESUME_STATE`, written to ``tmp-0.<pid>-<random>.<name>.partial`` and
+        published with ``os.replace``; older checkpoints are deleted (when only the latest is kept) only after that."""
         self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
         path = self.checkpoint_dir / f"step-{step:09d}.ckpt"
         partial = self.checkpoint_dir / f"{PARTIAL_PREFIX}{os.getpid()}-{secrets.token_hex(4)}.{path.name}.partial"
-        # The same dict as upstream's save_checkpoint (pinned by source hash in the tests).
+        # Upstream's save_checkpoint dict (pinned by source hash in the tests), plus our entry.
         state = {
             "step": step,
             "pipeline": self.pipeline.module.state_dict()  # type: ignore
@@ -410,6 +464,7 @@ class NakaGSTrainer(Trainer):
             "optimizers": {k: v.state_dict() for (k, v) in self.optimizers.optimizers.items()},
             "schedulers": {k: v.state_dict() for (k, v) in self.optimizers.schedulers.items()},
             "scalers": self.grad_scaler.state_dict(),
+            RESUME_STATE: self._resume_state(),
         }
         try:
             with open(partial, "wb") as fh:
@@ -432,8 +487,18 @@ class NakaGSTrainer(Trainer):
                 if old != path:
                     old.unlink()
 
+    def _resume_state(self) -> Dict[str, Any]:
+        """:data:`RESUME_STATE`: the random generators, and each part of the pipeline's own (``resume_state()``)."""
+        state: Dict[str, Any] = {"random": random_state()}
+        for name in ("datamanager", "model"):
+            part = getattr(self.pipeline, name, None)
+            if hasattr(part, "resume_state"):
+                state[name] = part.resume_state()
+        return state
+
     def _load_checkpoint(self) -> None:
-        """Upstream's loading of the newest valid checkpoint that ``--load-dir`` / ``--load-checkpoint`` allow."""
+        """Upstream's loading of the newest valid checkpoint that ``--load-dir`` / ``--load-checkpoint`` allow, then
+        what continues the run exactly (:data:`RESUME_STATE`)."""
         chosen = self.checkpoint_to_resume()
         if chosen is None:
             super()._load_checkpoint()
@@ -447,6 +512,32 @@ class NakaGSTrainer(Trainer):
             finally:
                 config.load_dir, config.load_checkpoint = saved
         self._rebind_optimizers()
+        if chosen is not None:
+            self._restore_resume_state(chosen)
+
+    def _restore_resume_state(self, path: Path) -> None:
+        """Put back the random generators, the view order and the densification statistics ``path`` holds, so that
+        the run continues as it would have uninterrupted; one line names what it lacks (an older checkpoint)."""
+        # Upstream has just loaded the file and keeps none of it; mapped, only the pickled entries are read again.
+        saved = torch.load(path, map_location="cpu", mmap=True).get(RESUME_STATE)
+        saved = saved if isinstance(saved, dict) else {}
+        restorers = {"random": set_random_state}
+        for name in ("datamanager", "model"):
+            part = getattr(self.pipeline, name, None)
+            if hasattr(part, "load_resume_state"):
+                restorers[name] = part.load_resume_state
+        lacking = [
+            RESUMED_PARTS[name]
+            for name, restore in restorers.items()
+            if not (isinstance(saved.get(name), dict) and restore(saved[name]))
+        ]
+        if lacking:
+            CONSOLE.print(
+                f"naka-gs: {path} holds no {', '.join(lacking)} (saved by an older naka-gs): training resumes from "
+                f"step {self._start_step}, but does not continue exactly as the interrupted run would have",
+                markup=False,
+                soft_wrap=True,
+            )
 
     def _rebind_optimizers(self) -> None:
         """Point every optimizer at the pipeline's current parameters, moving their loaded state along.

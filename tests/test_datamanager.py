@@ -19,6 +19,7 @@ from naka_gs_plugin.enhance.chroma import capture_chroma
 from naka_gs_plugin.enhance.naka import naka_enhance
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig
 from naka_gs_plugin.scripts.enhance import Enhance
+from naka_gs_plugin.trainer import random_state, set_random_state
 
 
 def _dm(scene, dtype="float32", **enhance):
@@ -55,6 +56,39 @@ def test_eval_images_are_byte_identical_to_source(toy_scene):
     _, batch = dm.next_eval_image(0)
     want = read_stored(dm.eval_dataset.image_filenames[batch["image_idx"]])
     assert torch.equal(batch["image"][..., :3], torch.from_numpy(want))
+
+
+def _served(dm, n: int) -> list:
+    return [dm.next_train(step)[0].metadata["cam_idx"] for step in range(n)]
+
+
+@pytest.mark.parametrize("sampling", ["random", "fps"])
+def test_the_view_order_continues_from_its_saved_state(toy_scene, tmp_path, sampling):
+    """What a checkpoint keeps of the datamanager (``resume_state``, through ``torch.save`` and a ``weights_only``
+    load) makes a new one serve the views the first would have served next, over the rounds after too; a state
+    naming views this scene lacks is refused and changes nothing."""
+    made = []
+    for _ in range(2):
+        dm = _dm(toy_scene, correction="none")
+        dm.config.train_cameras_sampling_strategy = sampling
+        dm.config.fps_reset_every = 5  # rounds of 5 of the 8 views: the views' unsampled-round counts differ
+        dm.train_unseen_cameras = dm.sample_train_cameras()  # as upstream's __init__ does, with this strategy
+        made.append(dm)
+    first, second = made
+    _served(first, len(first.train_dataset) + 5)  # a round and part of the next: its generator has moved on
+    first.eval_unseen_cameras.pop()
+    # With fps, upstream's sampler draws from numpy's global generator: the trainer saves that state beside this one.
+    torch.save((first.resume_state(), random_state()), tmp_path / "state.pt")
+    state, generators = torch.load(tmp_path / "state.pt", weights_only=True)
+    expected = _served(first, 3 * len(first.train_dataset))
+    set_random_state(generators)
+
+    bad = dict(state, train_unseen_cameras=state["train_unseen_cameras"] + [len(second.train_dataset)])
+    order = list(second.train_unseen_cameras)
+    assert second.load_resume_state(bad) is False and second.train_unseen_cameras == order
+    assert second.load_resume_state(state) is True
+    assert second.eval_unseen_cameras == [0]
+    assert _served(second, len(expected)) == expected
 
 
 def test_cache_hit_on_second_run_and_miss_when_sigma_changes(toy_scene, monkeypatch):

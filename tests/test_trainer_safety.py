@@ -2,8 +2,9 @@
 
 Ctrl-C on a real ``ns-train`` saves the current step and exits 130; checkpoints are published atomically;
 resuming skips a truncated or damaged checkpoint for the newest valid older one, and fails with one
-line when none is valid. Two ``ns-train`` subprocesses on the toy scene (~10 s each to import); the rest
-runs in-process on stub trainers.
+line when none is valid; a run killed (``kill -9``, during a save too) and resumed ends bit for bit as the
+uninterrupted run. Two ``ns-train`` subprocesses on the toy scene (~10 s each to import) and one Python
+subprocess running five ``ns-train`` runs (the kills); the rest runs in-process, on stub trainers or the toy scene.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 from naka_gs_plugin.trainer import (
     INTERRUPTED_EXIT_CODE,
     PARTIAL_PREFIX,
+    RESUME_STATE,
     LoggedStepsTensorboardWriter,
     NakaGSTrainer,
     checkpoint_step,
@@ -347,3 +349,238 @@ def test_tensorboard_gets_the_per_step_scalars_at_the_logged_steps_only(toy_scen
         assert steps[tag] == [0, 10, 20], tag
     assert steps["Train Rays / Sec"] == [10, 20]  # upstream records it from step 2 on
     assert steps["Test PSNR"] == [5]
+
+
+# ------------------------------------------------------------------------------------- 6. exact resume
+EXACT_STEPS, EXACT_SAVE_EVERY = 40, 7
+"""The resume runs: 40 steps saved every 7 (only the latest checkpoint kept, as by default). With refinement every 4
+steps from step 12 (:func:`_exact_config`), the checkpoints of steps 14 and 21 fall between two refinements, where
+the densification statistics hold two steps' gradients."""
+
+
+def _exact_config(scene: Path, out: Path, steps: int, **overrides):
+    """The naka-gs config as ``ns-train`` builds it, tiny and fast to densify: 500 random Gaussians refined every 4
+    steps (gsplat grows and prunes them from step 12), one SH degree more every 10 steps, a test view evaluated every
+    5 steps (it draws from Python's global generator)."""
+    from naka_gs_plugin.config import naka_gs_method
+
+    config = copy.deepcopy(naka_gs_method.config)
+    config.data, config.output_dir, config.timestamp, config.vis = scene, out, "run", "tensorboard"
+    config.max_num_iterations, config.steps_per_save = steps, EXACT_SAVE_EVERY
+    config.steps_per_eval_image, config.steps_per_eval_all_images = 5, 10**6
+    config.viewer.quit_on_train_completion = True
+    config.pipeline.init.triangulate = False
+    model = config.pipeline.model
+    model.num_random, model.warmup_length, model.refine_every, model.sh_degree_interval = 500, 2, 4, 10
+    for key, value in overrides.items():
+        setattr(config, key, value)
+    return config
+
+
+def _resume_driver(spec_path: str) -> None:
+    """Run the ``ns-train`` runs of ``spec_path`` (json) one after the other, each in a process of its own forked from
+    this one (imported once, nothing computed yet), as ``nerfstudio.scripts.train.main`` runs them; a run may kill
+    itself with SIGKILL after a given step or half-way through writing a given step's checkpoint. Writes each run's
+    exit status and the files its checkpoint folder held before it started to ``spec["results"]``."""
+    import json
+
+    from nerfstudio.scripts import train as ns_train
+
+    spec = json.loads(Path(spec_path).read_text())
+    scene = Path(spec["scene"])
+    results = []
+    for run in spec["runs"]:
+        out = Path(run["out"])
+        models = out / scene.name / "naka-gs" / "run" / "nerfstudio_models"
+        if run.get("partial_as_step") is not None:  # the partial file a kill left, as the newest step-*.ckpt
+            (partial,) = models.glob(f"{PARTIAL_PREFIX}*.partial")
+            shutil.copy(partial, models / f"step-{run['partial_as_step']:09d}.ckpt")
+        before = sorted(p.name for p in models.iterdir()) if models.is_dir() else []
+        pid = os.fork()
+        if pid == 0:
+            code = 1
+            try:
+                with open(run["log"], "w") as log:
+                    os.dup2(log.fileno(), 1)
+                    os.dup2(log.fileno(), 2)
+                _arm_kill(run)
+                extra = {"load_dir": models} if run.get("resume") else {}
+                ns_train.main(_exact_config(scene, out, run["steps"], **extra))
+                code = 0
+            except SystemExit as exc:
+                print(exc)
+            except BaseException:
+                import traceback
+
+                traceback.print_exc()
+            finally:
+                sys.stdout.flush()
+                os._exit(code)
+        results.append({"rc": os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1]), "before": before})
+    Path(spec["results"]).write_text(json.dumps(results))
+
+
+def _arm_kill(run: dict) -> None:
+    """In a driver's child: SIGKILL this process once step ``kill_after_step`` has finished (its checkpoint, if
+    any, not yet written), or once half the checkpoint of step ``kill_saving_step`` is on disk."""
+    if run.get("kill_after_step") is not None:
+        real_step_done = NakaGSTrainer._step_done
+
+        def step_done(self, step):
+            real_step_done(self, step)
+            if step == run["kill_after_step"]:
+                os.kill(os.getpid(), signal.SIGKILL)
+
+        NakaGSTrainer._step_done = step_done
+    if run.get("kill_saving_step") is not None:
+        real_save = torch.save
+
+        def save(obj, fh, *args, **kwargs):
+            real_save(obj, fh, *args, **kwargs)
+            if isinstance(obj, dict) and obj.get("step") == run["kill_saving_step"]:
+                fh.flush()
+                fh.truncate(fh.tell() // 2)
+                os.fsync(fh.fileno())
+                os.kill(os.getpid(), signal.SIGKILL)
+
+        torch.save = save
+
+
+@pytest.mark.slow  # ns-train runs in one Python subprocess (~30 s)
+def test_a_run_killed_and_resumed_ends_bit_identical_to_the_uninterrupted_run(toy_scene, tmp_path):
+    """kill -9 after step 17 (the newest checkpoint: step 14), and kill -9 half-way through writing step 28's
+    checkpoint (the newest complete one: step 21; the half-written file also copied as step-000000028.ckpt); each
+    resumed with ``--load-dir`` for the remaining steps ends with the uninterrupted run's model, optimizer and
+    scheduler states, bit for bit."""
+    import json
+
+    last = EXACT_STEPS - 1
+    runs = [
+        {"out": tmp_path / "whole", "steps": EXACT_STEPS},
+        {"out": tmp_path / "killed", "steps": EXACT_STEPS, "kill_after_step": 17},
+        {"out": tmp_path / "killed", "steps": last - 14, "resume": True},
+        {"out": tmp_path / "cut", "steps": EXACT_STEPS, "kill_saving_step": 28},
+        {"out": tmp_path / "cut", "steps": last - 21, "resume": True, "partial_as_step": 28},
+    ]
+    for i, run in enumerate(runs):
+        run.update(out=str(run["out"]), log=str(tmp_path / f"run{i}.log"))
+    spec = tmp_path / "spec.json"
+    spec.write_text(json.dumps({"scene": str(toy_scene), "runs": runs, "results": str(tmp_path / "results.json")}))
+    code = f"import sys; from tests.test_trainer_safety import _resume_driver; _resume_driver({str(spec)!r})"
+    env = dict(_env(), PYTHONPATH=os.pathsep.join([str(Path(__file__).parents[1]), os.environ.get("PYTHONPATH", "")]))
+    res = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
+                         stderr=subprocess.STDOUT, text=True, timeout=600)  # fmt: skip
+    assert res.returncode == 0, res.stdout[-4000:]
+    results = json.loads((tmp_path / "results.json").read_text())
+    logs = [Path(run["log"]).read_text() for run in runs]
+    assert [r["rc"] for r in results] == [0, -signal.SIGKILL, 0, -signal.SIGKILL, 0], logs
+
+    assert results[2]["before"] == ["step-000000014.ckpt"], logs[1][-4000:]
+    (partial,) = [name for name in results[4]["before"] if name.endswith(".partial")]
+    assert partial.startswith(PARTIAL_PREFIX) and results[4]["before"] == sorted(
+        [partial, "step-000000021.ckpt", "step-000000028.ckpt"]
+    ), logs[3][-4000:]
+    models = tmp_path / "cut" / toy_scene.name / "naka-gs" / "run" / "nerfstudio_models"
+    skipped = (
+        f"naka-gs: skipping corrupt or truncated step-000000028.ckpt in {models}; resuming from step-000000021.ckpt"
+    )
+    assert skipped in _naka_lines(logs[4]), logs[4][-4000:]
+    for log in logs[2], logs[4]:
+        assert "Done loading Nerfstudio checkpoint" in log and not [line for line in _naka_lines(log)
+                                                                    if "holds no" in line], log[-4000:]  # fmt: skip
+
+    finals = [
+        torch.load(Path(runs[i]["out"]) / toy_scene.name / "naka-gs" / "run" / "nerfstudio_models"
+                   / f"step-{last:09d}.ckpt", map_location="cpu", weights_only=True)
+        for i in (0, 2, 4)
+    ]  # fmt: skip
+    whole = finals[0]
+    assert whole["pipeline"]["_model.gauss_params.means"].shape[0] > 500, "the runs never densified"
+    for resumed in finals[1:]:
+        for part in ("pipeline", "optimizers", "schedulers", "scalers"):
+            _assert_identical(resumed[part], whole[part], part)
+
+
+@dataclass
+class ShortRun:
+    checkpoint: Path
+    draws: tuple  # Python's, numpy's and torch's next random numbers after the checkpoint was written
+    views: list  # the training views the datamanager serves next, in order
+    strategy: dict  # the densification statistics
+
+
+@pytest.fixture(scope="module")
+def short_run(toy_scene, tmp_path_factory) -> ShortRun:
+    """A 3-step run (its checkpoint: step 2), and what came after its checkpoint."""
+    work = tmp_path_factory.mktemp("short_run")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("NAKA_GS_CACHE", str(work / "cache"))
+        trainer = _toy_trainer(toy_scene, work, 3)
+        trainer.train()
+    (checkpoint,) = trainer.checkpoint_dir.glob("step-*.ckpt")
+    datamanager, model = trainer.pipeline.datamanager, trainer.pipeline.model
+    views = [datamanager.next_train(3 + i)[0].metadata["cam_idx"] for i in range(len(datamanager.train_dataset) + 3)]
+    strategy = {k: v.clone() if isinstance(v, torch.Tensor) else v for k, v in model.strategy_state.items()}
+    return ShortRun(checkpoint, _draws(), views, strategy)
+
+
+def _draws() -> tuple:
+    import random
+
+    import numpy as np
+
+    return random.random(), float(np.random.rand()), torch.rand(4).tolist()
+
+
+def test_resuming_puts_back_the_random_state_view_order_and_densification_statistics(short_run, toy_scene, tmp_path):
+    resumed = _toy_trainer(toy_scene, tmp_path, 1, load_dir=short_run.checkpoint.parent)
+    assert _draws() == short_run.draws
+    datamanager = resumed.pipeline.datamanager
+    assert [datamanager.next_train(3 + i)[0].metadata["cam_idx"] for i in range(len(short_run.views))] == (
+        short_run.views
+    )
+    strategy = resumed.pipeline.model.strategy_state
+    assert strategy["grad2d"] is not None and set(strategy) == set(short_run.strategy)
+    _assert_identical(strategy, short_run.strategy, "strategy_state")
+    # Statistics of another number of Gaussians are refused, changing nothing.
+    other = {k: v[:-1] if isinstance(v, torch.Tensor) else v for k, v in short_run.strategy.items()}
+    assert resumed.pipeline.model.load_resume_state({"strategy": other}) is False
+    _assert_identical(strategy, short_run.strategy, "strategy_state")
+
+
+def test_a_checkpoint_without_the_resume_state_resumes_with_one_line(short_run, toy_scene, tmp_path, capsys):
+    """A checkpoint of an older naka-gs (upstream's dict only) still resumes, saying in one line that the run will
+    not continue exactly; the checkpoints it then writes carry the state again."""
+    state = torch.load(short_run.checkpoint, map_location="cpu", weights_only=True)
+    assert set(state[RESUME_STATE]) == {"random", "datamanager", "model"}
+    del state[RESUME_STATE]
+    old = tmp_path / "old" / short_run.checkpoint.name
+    old.parent.mkdir()
+    torch.save(state, old)
+    capsys.readouterr()
+    resumed = _toy_trainer(toy_scene, tmp_path / "b", 1, load_dir=old.parent)
+    assert _naka_lines(capsys.readouterr().out) == [
+        f"naka-gs: {old} holds no random state, view order, densification statistics (saved by an older naka-gs): "
+        "training resumes from step 3, but does not continue exactly as the interrupted run would have"
+    ]
+    before = resumed.pipeline.model.means.detach().clone()
+    resumed.train()
+    assert not torch.equal(resumed.pipeline.model.means.detach(), before)
+    written = torch.load(resumed.checkpoint_dir / "step-000000003.ckpt", map_location="cpu", weights_only=True)
+    assert set(written[RESUME_STATE]) == {"random", "datamanager", "model"}
+
+
+def _assert_identical(got, want, where: str) -> None:
+    """Equal bit for bit: tensors by ``torch.equal`` (dtype and shape too), containers item by item."""
+    if isinstance(want, torch.Tensor):
+        assert isinstance(got, torch.Tensor) and got.dtype == want.dtype and torch.equal(got, want), where
+    elif isinstance(want, dict):
+        assert isinstance(got, dict) and sorted(got, key=str) == sorted(want, key=str), where
+        for key in want:
+            _assert_identical(got[key], want[key], f"{where}.{key}")
+    elif isinstance(want, (list, tuple)):
+        assert type(got) is type(want) and len(got) == len(want), where
+        for i, (g, w) in enumerate(zip(got, want)):
+            _assert_identical(g, w, f"{where}[{i}]")
+    else:
+        assert got == want, where

@@ -33,7 +33,7 @@ import math
 import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List, Literal, Optional, Type, Union
+from typing import Any, Dict, List, Literal, Optional, Type, Union
 from unittest import mock
 
 import torch
@@ -185,6 +185,27 @@ class NakaGSModel(SplatfactoModel):
         if self.view_appearance is not None:
             groups["appearance"] = list(self.view_appearance.parameters())
         return groups
+
+    def resume_state(self) -> Dict[str, Any]:
+        """What training carries from step to step outside the ``state_dict``: the densification strategy's running
+        statistics (gsplat's ``DefaultStrategy`` state: each Gaussian's summed screen-space gradient, visibility count
+        and largest screen radius since the last refinement). :meth:`load_resume_state` puts it back."""
+        return {"strategy": dict(self.strategy_state)}
+
+    def load_resume_state(self, state: Dict[str, Any]) -> bool:
+        """Continue from :meth:`resume_state`; False, changing nothing, when it does not fit this model's strategy
+        or its number of Gaussians (the statistics are per Gaussian)."""
+        strategy = state.get("strategy")
+        if not isinstance(strategy, dict) or set(strategy) != set(self.strategy_state):
+            return False
+        per_gaussian = [v for v in strategy.values() if isinstance(v, Tensor)]
+        if any(v.shape[:1] != (self.num_points,) for v in per_gaussian):
+            return False
+        # Copies: the loaded tensors may be mapped from the checkpoint file, which a later save deletes.
+        self.strategy_state.update(
+            {k: v.to(self.device, copy=True) if isinstance(v, Tensor) else v for k, v in strategy.items()}
+        )
+        return True
 
     # ------------------------------------------------------------------ rasterization
     def _backend(self, device: torch.device) -> str:
