@@ -426,8 +426,14 @@ class NakaGSTrainer(Trainer):
         self.save_checkpoint(self._done_step)
         path = self.checkpoint_dir / f"step-{self._done_step:09d}.ckpt"
         self._exit_interrupted(
-            f"interrupted; step {self._done_step} saved to {path} (resume with --load-dir {self.checkpoint_dir})"
+            f"interrupted; step {self._done_step} saved to {path} ({self._resume_hint(self._done_step)})"
         )
+
+    def _resume_hint(self, saved_step: int) -> str:
+        """How to resume from ``saved_step`` and end where this run would have: upstream's ``--max-num-iterations``
+        counts the steps a run trains after its checkpoint, so the same command would train them all again."""
+        left = self._start_step + self.config.max_num_iterations - 1 - saved_step
+        return f"resume with --load-dir {self.checkpoint_dir} --max-num-iterations {left} to end at the same step"
 
     def _train_complete_viewer(self) -> None:
         """Upstream waits here for Ctrl-C after a finished training; let that Ctrl-C through as before."""

@@ -569,7 +569,8 @@ def test_sigterm_finishes_the_step_saves_and_exits_as_ctrl_c(toy_scene, tmp_path
     saved = models / "step-000000002.ckpt"
     assert _naka_lines(capsys.readouterr().out)[-2:] == [
         "naka-gs: SIGTERM: finishing step 2, then saving a checkpoint (SIGTERM again: quit without saving)",
-        f"naka-gs: interrupted; step 2 saved to {saved} (resume with --load-dir {models})",
+        f"naka-gs: interrupted; step 2 saved to {saved} (resume with --load-dir {models} --max-num-iterations 997 "
+        "to end at the same step)",
     ]
     assert sorted(p.name for p in models.iterdir()) == [saved.name]
     assert _snapshot(toy_scene) == before

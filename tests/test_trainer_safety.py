@@ -156,11 +156,13 @@ def test_method_config_targets_the_safe_trainer_and_survives_config_yml():
 @pytest.mark.slow  # ns-train in a subprocess (the interrupted fixture)
 def test_ctrl_c_saves_the_current_step_and_exits_130(interrupted):
     assert interrupted.rc == INTERRUPTED_EXIT_CODE, interrupted.log[-4000:]
-    saved = [re.fullmatch(r"naka-gs: interrupted; step (\d+) saved to (\S+) \(resume with --load-dir (\S+)\)", line)
+    saved = [re.fullmatch(r"naka-gs: interrupted; step (\d+) saved to (\S+) \(resume with --load-dir (\S+) "
+                          r"--max-num-iterations (\d+) to end at the same step\)", line)
              for line in _naka_lines(interrupted.log)]  # fmt: skip
     saved = [m for m in saved if m]
     assert len(saved) == 1, interrupted.log[-4000:]
     step, path, load_dir = int(saved[0].group(1)), Path(saved[0].group(2)), Path(saved[0].group(3))
+    assert step + int(saved[0].group(4)) == 2000 - 1  # the 2000-step run's last step
     assert path.parent == load_dir == interrupted.ckpt_dir and checkpoint_step(path) == step
     assert sorted(p.name for p in interrupted.ckpt_dir.iterdir()) == [path.name], "stray files next to the checkpoint"
     assert step < STEPS_PER_SAVE  # so no periodic save wrote it
