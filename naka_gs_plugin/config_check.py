@@ -8,9 +8,10 @@ so :func:`check_run_config` refuses both, naming the nearest known key, and also
 file or from ns-train's options (``--max-num-iterations 0``, ``--pipeline.model.sh-degree -1``).
 
 A config.yml that is not YAML, empty, or not a run's configuration fails inside upstream's loader before any of
-our code runs: :func:`config_file_error` turns those errors into one line (ns-train's ``--load-config`` file is
-checked by :meth:`~naka_gs_plugin.trainer.NakaGSTrainerConfig.__post_init__`; the commands that load a run go
-through ``eval_setup``, whose errors the hook :func:`install_excepthook` sets converts).
+our code runs. ns-train's ``--load-config`` file is checked before it is read
+(:meth:`~naka_gs_plugin.trainer.NakaGSTrainerConfig.__post_init__`, :func:`check_config_file`); the commands that
+load a run read it in ``eval_setup``, whose errors :func:`config_file_error` turns into one line at the top of the
+command (:func:`install_excepthook`).
 """
 
 from __future__ import annotations

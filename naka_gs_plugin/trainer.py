@@ -17,7 +17,10 @@
 holds another run, a missing ``--data`` or an unwritable ``--output-dir`` is one line and leaves no
 folder, and ``ns-eval`` / ``ns-render`` / ``ns-export`` / ``ns-viewer`` load the newest valid checkpoint
 of the folder their config.yml is in (a copied or moved run loads its own checkpoints); a scene that is
-no longer where config.yml says is one line there too (:func:`loading_error_exit`).
+no longer where config.yml says is one line there too (:func:`loading_error_exit`). A config.yml or option that
+nerfstudio would misread (an unknown key, a value of the wrong type or out of range) is one line before anything
+runs (:mod:`naka_gs_plugin.config_check`), as is a checkpoint of a scene with another number of views, and
+``ns-export`` never replaces a file already in its ``--output-dir``.
 
 Only the hooks are overridden; loading the chosen file is still upstream's code. The upstream methods
 whose behaviour this relies on are pinned by source hash in ``tests/test_trainer_safety.py`` and
@@ -50,7 +53,7 @@ from nerfstudio.utils.misc import step_check
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from naka_gs_plugin.config_check import check_config_file, check_run_config, install_excepthook
-from naka_gs_plugin.data.safe_io import check_new_files
+from naka_gs_plugin.data.safe_io import UnsafeOutputError, check_new_files
 from naka_gs_plugin.errors import user_error_exit
 
 INTERRUPTED_EXIT_CODE = 130  # 128 + SIGINT, what shells report for a Ctrl-C'd command; SIGTERM exits with it too
@@ -418,10 +421,10 @@ def _remove_new_empty_output_dir(eval_setup_frame: FrameType) -> None:
 
 
 EXPORTED_FILES = {
-    "ExportGaussianSplat": ("output_filename",),
-    "ExportCameraPoses": ("transforms_train.json", "transforms_eval.json"),
+    "ExportGaussianSplat": lambda command: [command.output_filename],
+    "ExportCameraPoses": lambda command: ["transforms_train.json", "transforms_eval.json"],
 }
-"""The files ``ns-export``'s commands for a splat model write into ``--output-dir``: names, or the option naming one."""
+"""The files that ``ns-export``'s commands for a splat model write into ``--output-dir``, by command class."""
 
 
 def _check_export_target(eval_setup_frame: FrameType) -> None:
@@ -432,15 +435,12 @@ def _check_export_target(eval_setup_frame: FrameType) -> None:
     out = getattr(owner, "output_dir", None)
     if type(owner).__module__ != "nerfstudio.scripts.exporter" or not isinstance(out, Path):
         return
-    names = [getattr(owner, n, n) for n in EXPORTED_FILES.get(type(owner).__name__, ())]
+    names = EXPORTED_FILES.get(type(owner).__name__, lambda command: [])(owner)
     fix = "choose another --output-dir" + (" or --output-filename" if hasattr(owner, "output_filename") else "")
     try:
         check_new_files(out, names, "--output-dir", fix)
-    except ValueError as err:
-        exit_ = user_error_exit(err)
-        if exit_ is None:
-            raise
-        raise exit_ from None
+    except UnsafeOutputError as err:
+        raise SystemExit(f"naka-gs: {err}") from None
 
 
 install_excepthook(_remove_new_empty_output_dir)  # a config.yml eval_setup cannot read: one line
