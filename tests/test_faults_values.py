@@ -32,6 +32,7 @@ from nerfstudio.utils import eval_utils
 from naka_gs_plugin.config import METHODS, naka_gs_method
 from naka_gs_plugin.config_check import run_config_problem
 from naka_gs_plugin.data.lowlight_dataparser import LowLightDataError, LowLightDataParserConfig
+from naka_gs_plugin.sim.toy_scene import ToySceneConfig, write_toy_scene
 from tests.helpers import upstream_sha256
 
 BIN = Path(sys.executable).parent
@@ -168,8 +169,9 @@ def replace(old: str, new: str) -> Callable[[str], str]:
 
 
 def two_training_frames(env):
-    """Two views: both equally far from their centre; the spread check once blamed one of them."""
-    s = env.scene(n_train=2)
+    """Two views (the simulator's two-view scene): both equally far from their centre; the spread check once took
+    one of them, lower in x, y and z, for the centre and blamed the other."""
+    s = write_toy_scene(env.tmp / "two", ToySceneConfig(n_train=2, n_test=1, width=64, height=48))
     config = train_config(s, env.tmp / "out")
 
     def action():
