@@ -39,7 +39,7 @@ from naka_gs_plugin.points.seeding import (
     log_points,
     resolve_seed_points,
 )
-from naka_gs_plugin.trainer import loading_error_exit
+from naka_gs_plugin.trainer import checkpoint_mismatch_exit, loading_error_exit
 
 
 @dataclass
@@ -122,6 +122,33 @@ class NakaGSPipeline(VanillaPipeline):
                 points3D_rgb=torch.from_numpy(np.ascontiguousarray(rgb)),
             )
         return self.datamanager
+
+    def load_pipeline(self, loaded_state: Dict[str, Any], step: int) -> None:
+        """Upstream's, after checking that the checkpoint fits this model: its per-view parameters (appearance,
+        bilateral grids, camera adjustments) have one row per training view, so a checkpoint of a scene with
+        another number of views (``--load-dir`` of another scene's run, or ``data:`` in config.yml pointed at
+        another scene) is one line naming the checkpoint, instead of torch's size-mismatch traceback."""
+        problem = self._checkpoint_mismatch(loaded_state, self.datamanager.config.dataparser.data)
+        if problem is None:
+            return super().load_pipeline(loaded_state, step)
+        raise checkpoint_mismatch_exit(sys._getframe(1), problem)
+
+    def _checkpoint_mismatch(self, loaded_state: Dict[str, Any], data: Path) -> Optional[str]:
+        """How ``loaded_state`` does not fit this pipeline's parameters (but the Gaussians', which loading resizes)
+        of the scene ``data``; None when it fits."""
+        current = self.state_dict()
+        views = self.model.num_train_data
+        for key, value in loaded_state.items():
+            key = key[len("module.") :] if key.startswith("module.") else key
+            here = current.get(key)
+            if key.startswith("_model.gauss_params.") or here is None or not hasattr(value, "shape"):
+                continue
+            if tuple(value.shape) == tuple(here.shape):
+                continue
+            if here.dim() == value.dim() and here.shape[0] == views:
+                return f"was trained on a scene with {value.shape[0]} training views, and {data} has {views}"
+            return f"its {key} is {tuple(value.shape)}, where the model for {data} has {tuple(here.shape)}"
+        return None
 
     # ---------------------------------------------------------------------------------- seeding
     def _resolve_seed(self, compute: bool) -> SeedResult:

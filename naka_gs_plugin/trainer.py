@@ -22,7 +22,10 @@
 holds another run, a missing ``--data`` or an unwritable ``--output-dir`` is one line and leaves no
 folder, and ``ns-eval`` / ``ns-render`` / ``ns-export`` / ``ns-viewer`` load the newest valid checkpoint
 of the folder their config.yml is in (a copied or moved run loads its own checkpoints); a scene that is
-no longer where config.yml says is one line there too (:func:`loading_error_exit`).
+no longer where config.yml says is one line there too (:func:`loading_error_exit`). A config.yml or option that
+nerfstudio would misread (an unknown key, a value of the wrong type or out of range) is one line before anything
+runs (:mod:`naka_gs_plugin.config_check`), as is a checkpoint of a scene with another number of views, and
+``ns-export`` never replaces a file already in its ``--output-dir``.
 
 Only the hooks are overridden; loading the chosen file is still upstream's code. The upstream methods
 whose behaviour this relies on are pinned by source hash in ``tests/test_trainer_safety.py`` and
@@ -59,6 +62,8 @@ from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.misc import step_check
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from naka_gs_plugin.config_check import check_config_file, check_run_config, install_excepthook
+from naka_gs_plugin.data.safe_io import UnsafeOutputError, check_new_files
 from naka_gs_plugin.errors import signal_exit_status, user_error_exit
 
 INTERRUPTED_EXIT_CODE = signal_exit_status(signal.SIGINT)  # 130, what shells report for a Ctrl-C'd command
@@ -641,6 +646,32 @@ def _remove_new_empty_output_dir(eval_setup_frame: FrameType) -> None:
         pass
 
 
+EXPORTED_FILES = {
+    "ExportGaussianSplat": lambda command: [command.output_filename],
+    "ExportCameraPoses": lambda command: ["transforms_train.json", "transforms_eval.json"],
+}
+"""The files that ``ns-export``'s commands for a splat model write into ``--output-dir``, by command class."""
+
+
+def _check_export_target(eval_setup_frame: FrameType) -> None:
+    """``ns-export`` writes into its ``--output-dir`` without looking: refuse, before the run is loaded, an
+    ``--output-dir`` that is a file, or one that already holds a file the export would replace."""
+    caller = eval_setup_frame.f_back
+    owner = caller.f_locals.get("self") if caller is not None else None
+    out = getattr(owner, "output_dir", None)
+    if type(owner).__module__ != "nerfstudio.scripts.exporter" or not isinstance(out, Path):
+        return
+    names = EXPORTED_FILES.get(type(owner).__name__, lambda command: [])(owner)
+    fix = "choose another --output-dir" + (" or --output-filename" if hasattr(owner, "output_filename") else "")
+    try:
+        check_new_files(out, names, "--output-dir", fix)
+    except UnsafeOutputError as err:
+        raise SystemExit(f"naka-gs: {err}") from None
+
+
+install_excepthook(_remove_new_empty_output_dir)  # a config.yml eval_setup cannot read: one line
+
+
 def loading_error_exit(frame: Optional[FrameType], data: Optional[Path], err: BaseException) -> Optional[SystemExit]:
     """The one line to exit with when ``err``, a user error (:data:`~naka_gs_plugin.errors.USER_ERRORS`), was raised while nerfstudio's
     ``eval_setup`` (``frame``) set up the pipeline of the run it loads, whose scene is ``data``; else None.
@@ -662,6 +693,20 @@ def loading_error_exit(frame: Optional[FrameType], data: Optional[Path], err: Ba
     )
 
 
+def checkpoint_mismatch_exit(loader: FrameType, problem: str) -> SystemExit:
+    """The one line for a checkpoint that does not fit the pipeline it is loaded into (``problem``), loaded by
+    ``loader``: upstream's ``eval_load_checkpoint`` (``eval_setup``: ns-eval & co.) or ``Trainer._load_checkpoint``
+    (a resumed ns-train); each names the file in a local of its own (pinned by source hash in the tests)."""
+    path = loader.f_locals.get("load_path") or loader.f_locals.get("load_checkpoint") or "(unnamed)"
+    config_path = _eval_setup_config_path(loader.f_back)
+    if config_path is not None:
+        _remove_new_empty_output_dir(loader.f_back)
+        fix = f"point data: in {config_path} back at the scene this run was trained on"
+    else:
+        fix = "resume a run only with the --data it was trained on, or leave out --load-dir to train from scratch"
+    return SystemExit(f"naka-gs: checkpoint {path}: {problem} -- {fix}")
+
+
 @dataclass
 class NakaGSTrainerConfig(TrainerConfig):
     """nerfstudio's ``TrainerConfig`` for :class:`NakaGSTrainer`, with a run folder that can be trusted.
@@ -673,12 +718,19 @@ class NakaGSTrainerConfig(TrainerConfig):
 
     _target: Type = field(default_factory=lambda: NakaGSTrainer)
 
+    def __post_init__(self) -> None:
+        """``ns-train naka-gs --load-config FILE`` takes every option from FILE: check it (YAML, a run's
+        configuration, known keys, values of their type and range) before nerfstudio reads it."""
+        if self.load_config is not None:
+            check_config_file(self.load_config)
+
     def set_timestamp(self) -> None:
         """Upstream's timestamp, then refuse a run folder that already holds a run, unless this run resumes
         it (``--load-dir`` / ``--load-checkpoint`` inside it). ``ns-train`` calls this just before it writes
         config.yml; programs that manage their own run folders (benchmarks.grid) call ``save_config`` only.
         ``ns-train --load-config <a run's config.yml>`` ends here too: its file fixes the run folder, so the
-        refusal also says what to change in the file."""
+        refusal also says what to change in the file. Values out of range are refused first (one line)."""
+        check_run_config(self, None)
         super().set_timestamp()
         self._refuse_a_run_folder_in_use()
 
@@ -751,6 +803,12 @@ class NakaGSTrainerConfig(TrainerConfig):
         config_path = _eval_setup_config_path(frame)
         if config_path is None:
             return super().get_checkpoint_dir()
+        try:
+            check_run_config(self, config_path)
+        except SystemExit:
+            _remove_new_empty_output_dir(frame)
+            raise
+        _check_export_target(frame)
         here = config_path.absolute().parent
         recorded = super().get_base_dir()
         if recorded.resolve() != here.resolve():

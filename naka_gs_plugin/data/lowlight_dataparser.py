@@ -23,6 +23,7 @@ is then ``False`` and the datamanager refuses metrics with a one-line message.
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import math
@@ -65,7 +66,11 @@ MAX_CAMERA_SPREAD = 100.0
 
 Measured on the 12 real scenes in ../shared/data (LOM bike/chair/shrub/sofa, the 8 RealX3D scenes):
 1.9 to 5.4 (LOM chair). A camera 100x out is a broken pose (wrong units, a tracking failure); it would
-also shrink the normalized scene by that factor, since auto-scale fits the farthest camera into [-1, 1]."""
+also shrink the normalized scene by that factor, since auto-scale fits the farthest camera into [-1, 1].
+Two cameras are never refused: both are equally far from their centre."""
+MIN_IMAGE_SIDE = 8
+"""Smallest image side accepted, in pixels: training starts at 1/4 size (splatfacto's two downscales), and a view
+needs 2 pixels a side there (a 1 px view breaks the loss's tensors)."""
 
 
 class LowLightDataError(ValueError):
@@ -152,6 +157,13 @@ def _check_intrinsics(intr: List[float], path: Path, where: str) -> None:
         raise _fail(path, f"{where} intrinsics fl_x fl_y cx cy w h = {intr} are not all finite", "fix the camera")
     if w < 1 or h < 1 or w != round(w) or h != round(h):
         raise _fail(path, f"{where} image size w x h = {w} x {h}", "give the image width and height in whole pixels")
+    if min(w, h) < MIN_IMAGE_SIDE:
+        raise _fail(
+            path,
+            f"{where} image size w x h = {w:g} x {h:g} px is under the {MIN_IMAGE_SIDE} x {MIN_IMAGE_SIDE} minimum "
+            "(training starts at 1/4 size)",
+            f"use images at least {MIN_IMAGE_SIDE} px on each side",
+        )
     if fx <= 0 or fy <= 0:
         raise _fail(path, f"{where} focal length fl_x, fl_y = {fx}, {fy}", "focal lengths are positive, in pixels")
     if max(fx, fy) > MAX_FOCAL_RATIO * max(w, h):
@@ -162,11 +174,25 @@ def _check_intrinsics(intr: List[float], path: Path, where: str) -> None:
         )
 
 
+def _is_link_loop(path: Path) -> bool:
+    try:
+        path.stat()
+    except OSError as err:
+        return err.errno == errno.ELOOP
+    return False
+
+
 def _resolve_image(scene: Path, frame: dict, index: int, path: Path) -> Path:
     fp = frame.get("file_path")
     if not isinstance(fp, str) or not fp.strip():
         raise _fail(
             path, f"frame {index} has no usable 'file_path' ({fp!r})", "set it to the image path relative to the scene"
+        )
+    if _is_link_loop(scene / fp):  # pathlib's resolve() would raise RuntimeError("Symlink loop from ...")
+        raise _fail(
+            path,
+            f"frame {index} file_path {fp}: {scene / fp} is a symbolic link that leads back to itself (a link loop)",
+            "replace the link with the image file, or point it at one",
         )
     candidate = (scene / fp).resolve() if not Path(fp).is_absolute() else Path(fp)
     if "\\" in fp and not candidate.exists():  # written on Windows: its separators, where the file is there that way
@@ -273,7 +299,9 @@ def _check_camera_spread(train: "SplitFrames") -> None:
     """Refuse training cameras all at one place, or one far out of the others (see :data:`MAX_CAMERA_SPREAD`):
     either would make the auto-scale degenerate (1e12, 1e-9) in silence."""
     centres = train.poses[:, :3, 3].double()
-    mid = centres.median(dim=0).values
+    # quantile, not median(): for an even count torch's median is the lower of the two middle values, which made
+    # one of two cameras the centre and the other infinitely far out in median distances.
+    mid = centres.quantile(0.5, dim=0)
     dist = (centres - mid).norm(dim=1)
     far = int(dist.argmax())
     if float(dist[far]) <= 1e-9 * max(1.0, float(mid.norm())):
@@ -283,7 +311,7 @@ def _check_camera_spread(train: "SplitFrames") -> None:
             + f" at one position {[round(v, 6) for v in mid.tolist()]}",
             "3D reconstruction needs views from different positions: check the poses (a copied matrix?)",
         )
-    median = float(dist.median())
+    median = float(dist.quantile(0.5))
     if float(dist[far]) > MAX_CAMERA_SPREAD * median:
         raise _fail(
             train.json_path,
@@ -416,6 +444,13 @@ class LowLightDataParser(DataParser):
                 f"{self.config.downscale_factor}: pass 1 (full resolution), 2, 4, ... or leave it out (automatic)"
             )
         factor = self.config.downscale_factor or auto_downscale(*frames.intrinsics[0, 4:6].tolist())
+        side = int(frames.intrinsics[:, 4:6].min()) // factor  # the floor Cameras.rescale_output_resolution takes
+        if side < MIN_IMAGE_SIDE:
+            raise LowLightDataError(
+                f"--pipeline.datamanager.dataparser.downscale-factor {factor}: makes the images' shorter side "
+                f"{side} px, under the {MIN_IMAGE_SIDE} px minimum (training starts at 1/4 size) -- pass a smaller "
+                "factor or leave it out (automatic)"
+            )
         images = frames.images
         if factor > 1 and has_gt:
             images = [downscaled_copy(p, factor) for p in frames.images]

@@ -142,6 +142,18 @@ def check_replaceable(out: Path, option: str, overwrite: Optional[bool]) -> None
         )
 
 
+def check_new_files(folder: Path, names: Iterable[str], option: str, fix: str) -> None:
+    """Refuse ``folder`` when it is a file, or holds one of ``names``: for a program that writes those files into
+    it without a check of its own (nerfstudio's ``ns-export``). ``fix`` names the other choices."""
+    if folder.exists() and not folder.is_dir():
+        raise UnsafeOutputError(f"{option} {folder}: exists and is not a folder -- choose another {option}")
+    for name in names:
+        if (folder / name).exists() or (folder / name).is_symlink():
+            raise UnsafeOutputError(
+                f"{option} {folder}: already holds {name}, which would be replaced -- move it away, or {fix}"
+            )
+
+
 def staging_dir(out: Path) -> Path:
     """A new, empty hidden sibling of ``out`` to build it in (see :func:`publish_dir`)."""
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -1,0 +1,292 @@
+"""A run's configuration checked before it is used: one line naming the key, the value and the fix.
+
+nerfstudio reads a run's ``config.yml`` (``ns-train --load-config``, ``ns-eval``, ``ns-render``, ``ns-export``,
+``ns-viewer``) with ``yaml.Loader``, which sets whatever keys the file holds as attributes: a misspelt key
+(``sh_degre: 1``) is ignored in silence, the run using the default, and a value of the wrong type
+(``sh_degree: three``) fails later as a ``TypeError`` deep in the model. Our docs tell users to edit config.yml,
+so :func:`check_run_config` refuses both, naming the nearest known key, and also values out of range, from the
+file or from ns-train's options (``--max-num-iterations 0``, ``--pipeline.model.sh-degree -1``).
+
+A config.yml that is not YAML, empty, or not a run's configuration fails inside upstream's loader before any of
+our code runs. ns-train's ``--load-config`` file is checked before it is read
+(:meth:`~naka_gs_plugin.trainer.NakaGSTrainerConfig.__post_init__`, :func:`check_config_file`); the commands that
+load a run read it in ``eval_setup``, whose errors :func:`config_file_error` turns into one line at the top of the
+command (:func:`install_excepthook`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import functools
+import linecache
+import sys
+import types
+import typing
+from pathlib import Path, PurePath
+from types import FrameType, TracebackType
+from typing import Any, Callable, Dict, Iterator, Literal, Optional, Tuple, Union
+
+import yaml
+
+RANGES: Dict[str, Tuple[int, Optional[int], str, str]] = {
+    "max_num_iterations": (1, None, "the number of training steps", ""),
+    "pipeline.model.sh_degree": (0, 4, "the spherical-harmonics degree", " (above 3 only with gsplat on CUDA)"),
+}
+"""Whole-number options checked for their range: dotted key -> (least, most or None, what it is, a note)."""
+
+
+def _flag(dotted: str) -> str:
+    return "--" + dotted.replace("_", "-")
+
+
+@functools.lru_cache(maxsize=None)
+def _hints(cls: type) -> Dict[str, Any]:
+    """The field types of a dataclass, or {} where they cannot be resolved (only its keys are checked then)."""
+    try:
+        return typing.get_type_hints(cls)
+    except Exception:
+        return {}
+
+
+def _mismatch(value: Any, hint: Any) -> Optional[str]:
+    """What ``hint`` asks for, when ``value`` is clearly not that; None when it fits or cannot be told."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (Union, types.UnionType):
+        wanted = [_mismatch(value, arg) for arg in args]
+        return None if None in wanted else " or ".join(wanted)  # type: ignore[arg-type]
+    if origin is Literal:
+        return (
+            None
+            if any(value == arg and type(value) is type(arg) for arg in args)
+            else ("one of " + ", ".join(str(arg) for arg in args))
+        )
+    if hint is type(None):
+        return None if value is None else "null"
+    if hint is bool:
+        return None if isinstance(value, bool) else "true or false"
+    if hint is int:
+        return None if isinstance(value, int) and not isinstance(value, bool) else "a whole number"
+    if hint is float:
+        return None if isinstance(value, (int, float)) and not isinstance(value, bool) else "a number"
+    if hint is str:
+        return None if isinstance(value, str) else "a string"
+    if isinstance(hint, type) and issubclass(hint, PurePath):
+        return None if isinstance(value, PurePath) else "a path"
+    if origin in (tuple, list) or hint in (tuple, list):
+        return None if isinstance(value, (tuple, list)) else "a list"
+    if origin is dict or hint is dict:
+        return None if isinstance(value, dict) else "a mapping (key: value lines)"
+    if isinstance(hint, type) and dataclasses.is_dataclass(hint):
+        return None if dataclasses.is_dataclass(value) and not isinstance(value, type) else f"a {hint.__name__} block"
+    return None  # Type[...], Callable, Any...: not checked
+
+
+def _is_path_hint(hint: Any) -> bool:
+    options = typing.get_args(hint) if typing.get_origin(hint) in (Union, types.UnionType) else (hint,)
+    return any(isinstance(option, type) and issubclass(option, PurePath) for option in options)
+
+
+def _default(config: Any, dotted: str) -> Any:
+    """The value of ``dotted`` in the registered preset the run was made with, if there is one."""
+    from naka_gs_plugin.config import METHODS  # the presets import this module's importer
+
+    spec = METHODS.get(getattr(config, "method_name", None))
+    value: Any = spec.config if spec is not None else None
+    for part in dotted.split("."):
+        value = value.get(part) if isinstance(value, dict) else getattr(value, part, None)
+    return value
+
+
+def _problems(obj: Any, where: str, names: Dict[str, str]) -> Iterator[Tuple[str, str, Any, str]]:
+    """``(kind, dotted key, value, detail)`` for each unknown key or wrong-typed value under ``obj``: kind
+    ``unknown`` (detail: the nearest known key's hint) or ``type`` (detail: what the field takes). A string where
+    a path is expected is taken as that path (a hand-edited ``data: /my/scene``)."""
+    prefix = f"{where}." if where else ""
+    if isinstance(obj, dict):
+        for key, value in obj.items():
+            yield from _problems(value, f"{prefix}{key}", names)
+        return
+    if not dataclasses.is_dataclass(obj) or isinstance(obj, type):
+        return
+    fields = {f.name for f in dataclasses.fields(obj)}
+    hints = _hints(type(obj))
+    for key, value in list(vars(obj).items()):
+        if key.startswith("_") and key not in fields:
+            continue  # set by our own code (the run folder a config was loaded from), never written to config.yml
+        dotted = f"{prefix}{key}"
+        if key not in fields:
+            near = difflib.get_close_matches(key, sorted(fields), n=1, cutoff=0.6)
+            elsewhere = names.get(key)
+            hint = (
+                f" (did you mean {prefix}{near[0]}?)"
+                if near
+                else (f" (it belongs under {elsewhere})" if elsewhere else "")
+            )
+            yield "unknown", dotted, value, hint
+            continue
+        hint = hints.get(key)
+        if hint is not None:
+            if isinstance(value, str) and _is_path_hint(hint):
+                value = Path(value)
+                setattr(obj, key, value)
+            wanted = _mismatch(value, hint)
+            if wanted is not None:
+                yield "type", dotted, value, wanted
+                continue
+        yield from _problems(value, dotted, names)
+
+
+def _field_owners(obj: Any, where: str = "", found: Optional[Dict[str, str]] = None) -> Dict[str, str]:
+    """Every field name in the tree under ``obj`` -> the dotted block that has it (the first one met)."""
+    found = {} if found is None else found
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        for field in dataclasses.fields(obj):
+            found.setdefault(field.name, where or "the top level")
+            if field.name in vars(obj):
+                _field_owners(vars(obj)[field.name], f"{where}.{field.name}" if where else field.name, found)
+    elif isinstance(obj, dict):
+        for key, value in obj.items():
+            _field_owners(value, f"{where}.{key}" if where else str(key), found)
+    return found
+
+
+def _value(config: Any, dotted: str) -> Any:
+    value = config
+    for part in dotted.split("."):
+        value = getattr(value, part, None)
+    return value
+
+
+def run_config_problem(config: Any, source: Optional[Path]) -> Optional[str]:
+    """The one line (``naka-gs: ...``) for the first problem of ``config``, else None: an unknown key or a value
+    of the wrong type (only a loaded config.yml can have those) or a value out of :data:`RANGES`. ``source`` is
+    the config.yml it was loaded from (its keys are named as in the file), None for ns-train's options."""
+    for kind, dotted, value, detail in _problems(config, "", _field_owners(config)):
+        where = source if source is not None else "the loaded configuration"
+        if kind == "unknown":
+            return (
+                f"naka-gs: {where}: unknown key {dotted}{detail} -- correct or delete it in that file "
+                "(nerfstudio would ignore it and use the default)"
+            )
+        default = _default(config, dotted)
+        example = f" (the default is {default})" if default is not None else ""
+        return f"naka-gs: {where}: {dotted} is {value!r}, not {detail} -- write {detail} there{example}"
+    for dotted, (least, most, what, note) in RANGES.items():
+        value = _value(config, dotted)
+        if not isinstance(value, int) or (value >= least and (most is None or value <= most)):
+            continue
+        rule = ("nothing to train; " if dotted == "max_num_iterations" and value == 0 else "") + (
+            f"{what} must be " + (f"at least {least}" if most is None else f"{least} to {most}") + note
+        )
+        default = _default(config, dotted)
+        if source is not None:
+            example = f" (the default is {default})" if default is not None else ""
+            return (
+                f"naka-gs: {source}: {dotted}: {value} is out of range; {rule} -- write a value in that range "
+                f"there{example}"
+            )
+        example = f", e.g. {_flag(dotted)} {default} (the default)" if default is not None else ""
+        return f"naka-gs: {_flag(dotted)} {value}: {rule} -- pass a value in that range{example}"
+    return None
+
+
+def check_run_config(config: Any, source: Optional[Path]) -> None:
+    """Exit with :func:`run_config_problem`'s line (status 1) when there is one."""
+    line = run_config_problem(config, source)
+    if line is not None:
+        raise SystemExit(line)
+
+
+def config_file_problem(path: Path, text: str, loaded: Any) -> Optional[str]:
+    """The one line for a config.yml that loaded as ``loaded`` but is not a run's configuration, else None."""
+    from nerfstudio.engine.trainer import TrainerConfig
+
+    if isinstance(loaded, TrainerConfig):
+        return None
+    if loaded is None and not text.strip():
+        return (
+            f"naka-gs: {path}: the file is empty -- it should hold the configuration ns-train wrote for the run: "
+            "restore it from a copy, or train the run again"
+        )
+    return (
+        f"naka-gs: {path}: holds {type(loaded).__name__ if loaded is not None else 'null'}, not a nerfstudio run "
+        "configuration -- pass the config.yml ns-train wrote in a run folder (<output-dir>/<scene>/<method>/<timestamp>)"
+    )
+
+
+def yaml_error_line(path: Path, err: yaml.YAMLError) -> str:
+    """The one line for a config.yml that YAML cannot read: the problem and where, with the fix."""
+    mark = getattr(err, "problem_mark", None)
+    where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+    problem = getattr(err, "problem", None) or " ".join(str(err).split())
+    return (
+        f"naka-gs: {path}: not a readable YAML file ({problem}{where}) -- fix that line, or restore the config.yml "
+        "ns-train wrote"
+    )
+
+
+def _unreadable_line(path: Path, err: Exception) -> str:
+    why = "not a text file" if isinstance(err, UnicodeDecodeError) else (getattr(err, "strerror", None) or str(err))
+    return f"naka-gs: {path}: cannot read it ({why}) -- pass the config.yml ns-train wrote in a run folder"
+
+
+def check_config_file(path: Path) -> None:
+    """Exit with one line (status 1) when ``path`` cannot be read, is not YAML, not a run's configuration, or holds
+    a problem of :func:`run_config_problem`; ``ns-train --load-config`` is checked so before it reads the file."""
+    try:
+        text = Path(path).read_text()
+    except (OSError, UnicodeDecodeError) as err:
+        raise SystemExit(_unreadable_line(path, err)) from None
+    try:
+        loaded = yaml.load(text, Loader=yaml.Loader)
+    except yaml.YAMLError as err:
+        raise SystemExit(yaml_error_line(path, err)) from None
+    line = config_file_problem(path, text, loaded) or run_config_problem(loaded, path)
+    if line is not None:
+        raise SystemExit(line)
+
+
+def config_file_error(exc: BaseException) -> Optional[Tuple[str, FrameType]]:
+    """The one line for ``exc``, and the ``eval_setup`` frame it passed, when it is upstream's ``eval_setup``
+    (ns-eval, ns-render, ns-export, ns-viewer) failing to read its config.yml: an error of the file's reading or
+    of its ``yaml.load``, or the ``assert`` after that of an empty file or one that holds no run configuration;
+    else None."""
+    tb: Optional[TracebackType] = exc.__traceback__
+    while tb is not None:
+        frame = tb.tb_frame
+        if frame.f_code.co_name == "eval_setup" and frame.f_globals.get("__name__") == "nerfstudio.utils.eval_utils":
+            break
+        tb = tb.tb_next
+    if tb is None or frame.f_locals.get("config_path") is None:
+        return None
+    path = Path(frame.f_locals["config_path"])
+    line = None
+    if "yaml.load(" in linecache.getline(frame.f_code.co_filename, tb.tb_lineno):
+        if isinstance(exc, yaml.YAMLError):
+            line = yaml_error_line(path, exc)
+        elif isinstance(exc, (OSError, UnicodeDecodeError)):
+            line = _unreadable_line(path, exc)
+    elif isinstance(exc, AssertionError) and tb.tb_next is None and "config" in frame.f_locals:
+        try:
+            line = config_file_problem(path, path.read_text(), frame.f_locals["config"])
+        except (OSError, UnicodeDecodeError):
+            return None
+    return (line, frame) if line is not None else None
+
+
+def _excepthook(previous, cleanup: Callable[[FrameType], None], exc_type, exc, tb) -> None:
+    found = config_file_error(exc) if exc is not None else None
+    if found is None:
+        previous(exc_type, exc, tb)
+        return
+    line, frame = found
+    cleanup(frame)
+    print(line, file=sys.stderr)  # the interpreter then exits with status 1, as for SystemExit(line)
+
+
+def install_excepthook(cleanup: Callable[[FrameType], None]) -> None:
+    """Make :func:`config_file_error`'s cases one line where they end a command (installed once per process);
+    ``cleanup(eval_setup_frame)`` runs first (ns-export removes the output folder it has just made)."""
+    if not isinstance(sys.excepthook, functools.partial) or sys.excepthook.func is not _excepthook:
+        sys.excepthook = functools.partial(_excepthook, sys.excepthook, cleanup)
