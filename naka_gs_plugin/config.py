@@ -24,6 +24,8 @@ from naka_gs_plugin.pipeline import NakaGSPipelineConfig
 from naka_gs_plugin.trainer import NakaGSTrainerConfig
 
 CUDA = torch.cuda.is_available()
+FUSED_ADAM_ON_CPU = not CUDA and torch.__version__ >= "2.4"
+"""Whether the optimizers are torch's fused Adam (:class:`FusedAdamConfig`): on a CPU, where torch has it (2.4 on)."""
 MAX_STEPS = 7000
 """7k steps on either device. On a 2-core CPU clearly better than 3k on the real-scene protocol, while 10k passes
 half an hour per scene (docs/real-scenes.md). On a GPU splatfacto's schedule scored best at 7k of its 30k on the
@@ -77,7 +79,7 @@ class FusedAdamConfig(AdamOptimizerConfig):
     rounding. On CUDA torch's own default (foreach) is kept, as splatfacto's GPU schedule was measured with it;
     so is it on torch < 2.4, which has no fused Adam for the CPU."""
 
-    fused: tyro.conf.Suppress[Optional[bool]] = None if CUDA or torch.__version__ < "2.4" else True
+    fused: tyro.conf.Suppress[Optional[bool]] = True if FUSED_ADAM_ON_CPU else None
     """True: torch's fused Adam; None: torch's default implementation for the device. Not a command-line option
     (it changes no result); a run's config.yml records it."""
 
