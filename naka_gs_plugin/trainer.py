@@ -530,7 +530,7 @@ class NakaGSTrainer(Trainer):
         """Put back the random generators, the view order and the densification statistics ``path`` holds, so that
         the run continues as it would have uninterrupted; one line names what it lacks (an older checkpoint)."""
         # Upstream has just loaded the file and keeps none of it; mapped, only the pickled entries are read again.
-        saved = torch.load(path, map_location="cpu", mmap=True).get(RESUME_STATE)
+        saved = torch.load(str(path), map_location="cpu", mmap=True).get(RESUME_STATE)
         saved = saved if isinstance(saved, dict) else {}
         restorers = {"random": set_random_state}
         for name in ("datamanager", "model"):

@@ -78,6 +78,7 @@ psnr=$("$env/bin/python" -c "import json; print(round(json.load(open('eval.json'
 mkdir "$tmp/clone" && tar -C "$repo" --exclude=__pycache__ -cf - pyproject.toml README.md docs tests benchmarks \
   | tar -xf - -C "$tmp/clone"
 cd "$tmp/clone"
+export NAKA_GS_SHARED="$repo/../shared"  # the real scenes some tests read, where a clone has them
 "$env/bin/python" -m pytest -q -p no:cacheprovider "${tests[@]}" > "$tmp/pytest.log" 2>&1 \
   || { tail -30 "$tmp/pytest.log"; say "tests failed on this set"; exit 1; }
 say "$(basename "$set_file"): Python $("$env/bin/python" -c 'import platform; print(platform.python_version())'), torch $torch_after (kept)," \

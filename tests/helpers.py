@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import inspect
+import os
 from pathlib import Path
 from typing import Callable, Dict, Optional, Sequence
 
@@ -12,9 +13,11 @@ import yaml
 
 from naka_gs_plugin.config import FusedAdamConfig
 
-SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+SHARED = Path(os.environ.get("NAKA_GS_SHARED", Path(__file__).resolve().parents[2] / "shared"))
+"""The shared folder beside the clone (``NAKA_GS_SHARED`` for tests run from elsewhere, scripts/check_compat.sh)."""
+SHARED_DATA = SHARED / "data"
 """The real scenes (LOM, LOL, RealX3D), read in place."""
-SHARED_REFERENCE = Path(__file__).resolve().parents[2] / "shared" / "reference"
+SHARED_REFERENCE = SHARED / "reference"
 """Reference material (the LPIPS example pair)."""
 TINY_VIEWS = {"n_train": 3, "n_test": 1, "width": 48, "height": 36, "spacing": 0.3}
 """A simulator scene's views small enough for unit tests."""

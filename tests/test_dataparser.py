@@ -126,7 +126,7 @@ def test_partially_missing_test_images_is_an_error(broken):
         LowLightDataParserConfig(data=broken, downscale_factor=1).setup().get_dataparser_outputs("test")
 
 
-@pytest.mark.parametrize("scene", [LOM[0], REALX3D[0]], ids=[LOM[0].name, REALX3D[0].name])
+@pytest.mark.parametrize("scene", [*LOM[:1], *REALX3D[:1]], ids=[p.name for p in [*LOM[:1], *REALX3D[:1]]])
 def test_world_points_map_into_the_training_frame_like_the_cameras(scene):
     from naka_gs_plugin.data.lowlight_dataparser import to_normalized_frame
 
