@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Set up (if needed) and run the whole test suite on CPU; extra arguments go to pytest. The full run
-# (no arguments, as CI) then checks a non-editable install (scripts/check_install.sh, < 2 min).
+# (no arguments, as CI) then checks a non-editable install (scripts/check_install.sh, < 2 min) and the wheel in
+# the oldest supported nerfstudio environment (scripts/check_compat.sh: ~4 min to build it the first time, ~8 GB).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
@@ -12,4 +13,5 @@ export TORCHDYNAMO_DISABLE=1
 .venv/bin/python -m pytest -q "$@"
 if [ $# -eq 0 ]; then
   bash scripts/check_install.sh
+  bash scripts/check_compat.sh
 fi

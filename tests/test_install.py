@@ -1,0 +1,61 @@
+"""pyproject.toml's dependency ranges against the exact sets that are measured (scripts/constraints*.txt): every
+pinned version lies in its range, and every lower bound is the oldest set's pin (a bound nobody measured fails)."""
+
+from __future__ import annotations
+
+import re
+import tomllib
+from pathlib import Path
+from typing import Dict
+
+import pytest
+from packaging.requirements import Requirement
+from packaging.specifiers import SpecifierSet
+from packaging.utils import canonicalize_name
+from packaging.version import Version
+
+ROOT = Path(__file__).resolve().parents[1]
+PROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+DEPENDENCIES = {canonicalize_name(r.name): r for r in map(Requirement, PROJECT["dependencies"])}
+SETS = {"oldest": ROOT / "scripts" / "constraints-oldest.txt", "newest": ROOT / "scripts" / "constraints.txt"}
+
+
+def pins(path: Path) -> Dict[str, Version]:
+    """``name == version`` lines of a constraints file (comments and blank lines skipped)."""
+    found = {}
+    for line in path.read_text().splitlines():
+        line = line.split("#")[0].strip()
+        if line:
+            name, version = re.fullmatch(r"([A-Za-z0-9_.\-]+)==(\S+)", line).groups()
+            found[canonicalize_name(name)] = Version(version)
+    return found
+
+
+@pytest.mark.parametrize("name", SETS)
+def test_each_measured_set_lies_inside_the_ranges(name):
+    pinned = pins(SETS[name])
+    missing = sorted(set(DEPENDENCIES) - set(pinned))
+    assert not missing, f"{SETS[name].name} pins no version of {missing}"
+    outside = {dep: str(pinned[dep]) for dep, req in DEPENDENCIES.items() if pinned[dep] not in req.specifier}
+    assert not outside, f"{SETS[name].name}: outside pyproject.toml's ranges: {outside}"
+
+
+def test_every_lower_bound_is_the_oldest_sets_pin():
+    oldest = pins(SETS["oldest"])
+    for dep, req in DEPENDENCIES.items():
+        lower = [Version(s.version) for s in req.specifier if s.operator == ">="]
+        assert lower == [oldest[dep]], f"{dep}: lower bound {lower} is not the oldest set's {oldest[dep]}"
+
+
+def test_requires_python_matches_the_classifiers():
+    """The Python versions the classifiers name (the measured ones) are the minor versions requires-python admits."""
+    admitted = SpecifierSet(PROJECT["requires-python"])
+    named = {c.rsplit(" :: ", 1)[1] for c in PROJECT["classifiers"] if re.fullmatch(r".*Python :: 3\.\d+", c)}
+    assert named == {f"3.{minor}" for minor in range(6, 20) if Version(f"3.{minor}.0") in admitted}
+
+
+def test_the_licence_files_ship():
+    assert (ROOT / "LICENSE").is_file()
+    shipped = [p for pattern in PROJECT["license-files"] for p in ROOT.glob(pattern)]
+    weights = sorted(ROOT.glob("naka_gs_plugin/*/weights/*.pt"))
+    assert {w.parent for w in weights} <= {p.parent for p in shipped}, "weights without a licence beside them"
