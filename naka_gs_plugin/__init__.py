@@ -2,7 +2,8 @@
 
 Layers, bottom to top; a module imports only its own layer and those below (``tests/test_import_graph.py``):
 
-- helpers: :mod:`.cpu` (thread caps), :mod:`.progress`, :mod:`.metrics`, :mod:`.sheet`, :mod:`.shipped`
+- helpers: :mod:`.requirements` (versions checked at import), :mod:`.cpu` (thread caps), :mod:`.progress`,
+  :mod:`.metrics`, :mod:`.sheet`, :mod:`.shipped`
   (the configs and weights shipped in the package);
 - :mod:`naka_gs_plugin.data`: the ``lowlight-data`` dataparser, the image reader, the cache, safe writes;
 - :mod:`naka_gs_plugin.enhance`: Naka-Rushton pre-enhancement and the chroma-correction network;
@@ -25,8 +26,12 @@ import importlib.abc as _importlib_abc
 import importlib.util as _importlib_util
 import sys as _sys
 
-import numpy as _np
-import torch as _torch
+from naka_gs_plugin.requirements import check_installed as _check_installed
+
+_check_installed()  # before torch's import: a too old torch is one line, not an error deep in a kernel
+
+import numpy as _np  # noqa: E402
+import torch as _torch  # noqa: E402
 
 try:  # numpy >= 1.26; ``numpy.core`` is a deprecated alias from numpy 2 on
     from numpy._core.multiarray import scalar as _scalar

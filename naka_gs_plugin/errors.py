@@ -23,6 +23,7 @@ USER_ERRORS = frozenset(
         "naka_gs_plugin.points.align.AlignmentError",
         "naka_gs_plugin.points.sfm.SfMError",
         "naka_gs_plugin.points.sources.PointSourceError",
+        "naka_gs_plugin.requirements.UnsupportedVersionError",
         "naka_gs_plugin.scripts.ppm.PpmOutputError",
         "naka_gs_plugin.scripts.process_data.ProcessDataError",
         "naka_gs_plugin.sim.spec.SimSpecError",

@@ -10,7 +10,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "naka_gs_plugin"
 
 LAYERS = ("helpers", "data", "enhance", "points", "model", "sim and method", "scripts")
 """Bottom to top (``naka_gs_plugin/__init__.py`` describes each)."""
-HELPERS = {"cpu", "progress", "metrics", "sheet", "shipped", "errors"}
+HELPERS = {"cpu", "progress", "metrics", "sheet", "shipped", "errors", "requirements"}
 METHOD = {"datamanager", "pipeline", "trainer", "config", "config_check"}
 """The method's wiring, side by side with the simulator above the model."""
 

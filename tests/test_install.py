@@ -14,6 +14,8 @@ from packaging.specifiers import SpecifierSet
 from packaging.utils import canonicalize_name
 from packaging.version import Version
 
+from naka_gs_plugin.requirements import too_old
+
 ROOT = Path(__file__).resolve().parents[1]
 PROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
 DEPENDENCIES = {canonicalize_name(r.name): r for r in map(Requirement, PROJECT["dependencies"])}
@@ -59,3 +61,30 @@ def test_the_licence_files_ship():
     shipped = [p for pattern in PROJECT["license-files"] for p in ROOT.glob(pattern)]
     weights = sorted(ROOT.glob("naka_gs_plugin/*/weights/*.pt"))
     assert {w.parent for w in weights} <= {p.parent for p in shipped}, "weights without a licence beside them"
+
+
+REQUIRES = ["torch<2.16,>=2.1.2", "numba<0.69,>=0.60.0", "tyro>=0.8.14", 'pytest>=7; extra == "dev"', "rich>=13.7.1"]
+
+
+@pytest.mark.parametrize(
+    "versions,refused",
+    [
+        ({"torch": "2.1.2+cu121", "numba": "0.60.0", "tyro": "1.0.17"}, None),  # a local build label is the release
+        ({"torch": "2.15.0", "numba": None, "tyro": "0.8.14"}, None),  # numba missing: its fallback, not a refusal
+        ({"torch": "2.17.0", "numba": "0.70.0", "tyro": "2.0"}, None),  # newer than tested: pip's to refuse
+        ({"torch": "2.0.1", "numba": "0.60.0", "tyro": "1.0"}, "torch"),
+        ({"torch": "2.14.1", "numba": "0.59.1", "tyro": "1.0"}, "numba"),
+        ({"torch": "2.14.1", "numba": "0.60.0", "tyro": "0.8.4"}, "tyro"),
+    ],
+)
+def test_an_older_dependency_is_refused_in_one_line(versions, refused):
+    message = too_old(REQUIRES, lambda name: versions.get(name, "0.0.1"))
+    if refused is None:
+        assert message is None
+    else:
+        req = next(r for r in REQUIRES if r.startswith(refused))
+        spec = str(Requirement(req).specifier)
+        assert message == (
+            f"naka-gs supports {refused}{spec}, and this environment has {refused} {versions[refused]}: "
+            f"pip install '{refused}{spec}' (or pip install naka-gs again, which installs it)"
+        )
