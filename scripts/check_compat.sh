@@ -74,13 +74,17 @@ config=$(ls demo/run/*/naka-gs/*/config.yml | head -1)
   || { tail -20 eval.log; say "ns-eval failed"; exit 1; }
 psnr=$("$env/bin/python" -c "import json; print(round(json.load(open('eval.json'))['results']['psnr'], 2))")
 
-# The quick tests against the installed wheel: a copy of tests/ and benchmarks/ without the package sources.
-mkdir "$tmp/clone" && tar -C "$repo" --exclude=__pycache__ -cf - pyproject.toml README.md docs tests benchmarks \
-  | tar -xf - -C "$tmp/clone"
-cd "$tmp/clone"
+# The tests against the installed wheel: a copy of the repository without the package's sources, run by the
+# environment's pytest script (which, unlike `python -m pytest`, puts no working folder on the path) from the
+# repository, where the shipped specs' relative paths to ../shared resolve.
+mkdir "$tmp/clone" && tar -C "$repo" --exclude=__pycache__ -cf - pyproject.toml README.md LICENSE docs tests \
+  benchmarks scripts | tar -xf - -C "$tmp/clone"
 export NAKA_GS_SHARED="$repo/../shared"  # the real scenes some tests read, where a clone has them
-"$env/bin/python" -m pytest -q -p no:cacheprovider "${tests[@]}" > "$tmp/pytest.log" 2>&1 \
-  || { tail -30 "$tmp/pytest.log"; say "tests failed on this set"; exit 1; }
+cd "$repo"
+[ -z "${PYTHONPATH:-}" ] || { say "PYTHONPATH is set: unset it, the tests must import the installed wheel"; exit 1; }
+"$env/bin/pytest" -q -p no:cacheprovider --rootdir "$tmp/clone" -c "$tmp/clone/pyproject.toml" \
+  "${tests[@]/#tests/$tmp/clone/tests}" > "$tmp/pytest.log" 2>&1 \
+  || { grep -E "^(FAILED|ERROR)|^E " "$tmp/pytest.log" | head -40; tail -3 "$tmp/pytest.log"; say "tests failed on this set"; exit 1; }
 say "$(basename "$set_file"): Python $("$env/bin/python" -c 'import platform; print(platform.python_version())'), torch $torch_after (kept)," \
   "nerfstudio $("$env/bin/python" -c 'import nerfstudio, importlib.metadata as m; print(m.version("nerfstudio"))'): pip check clean," \
   "demo trained, ns-eval PSNR $psnr dB, $(tail -1 "$tmp/pytest.log")"

@@ -56,11 +56,16 @@ def test_requires_python_matches_the_classifiers():
     assert named == {f"3.{minor}" for minor in range(6, 20) if Version(f"3.{minor}.0") in admitted}
 
 
-def test_the_licence_files_ship():
+def test_every_weights_file_has_its_licence_beside_it():
+    """In the package as imported (the wheel, under scripts/check_compat.sh), and named by pyproject's license-files."""
+    import naka_gs_plugin
+
+    package = Path(naka_gs_plugin.__file__).parent
+    weights = sorted(package.glob("*/weights/*.pt"))
+    assert weights and all(list(w.parent.glob("LICENSE-*.txt")) for w in weights), "weights without a licence"
     assert (ROOT / "LICENSE").is_file()
-    shipped = [p for pattern in PROJECT["license-files"] for p in ROOT.glob(pattern)]
-    weights = sorted(ROOT.glob("naka_gs_plugin/*/weights/*.pt"))
-    assert {w.parent for w in weights} <= {p.parent for p in shipped}, "weights without a licence beside them"
+    named = {p.parent.name + "/" + p.name for pattern in PROJECT["license-files"] for p in ROOT.glob(pattern)}
+    assert {f"{w.parent.name}/{lic.name}" for w in weights for lic in w.parent.glob("LICENSE-*.txt")} <= named
 
 
 REQUIRES = ["torch<2.16,>=2.1.2", "numba<0.69,>=0.60.0", "tyro>=0.8.14", 'pytest>=7; extra == "dev"', "rich>=13.7.1"]
