@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import inspect
 import os
@@ -11,7 +12,7 @@ from typing import Callable, Dict, Optional, Sequence
 import torch
 import yaml
 
-from naka_gs_plugin.config import FusedAdamConfig
+from naka_gs_plugin.config import FusedAdamConfig, naka_gs_method
 
 SHARED = Path(os.environ.get("NAKA_GS_SHARED", Path(__file__).resolve().parents[2] / "shared"))
 """The shared folder beside the clone (``NAKA_GS_SHARED`` for tests run from elsewhere, scripts/check_compat.sh)."""
@@ -136,3 +137,27 @@ def make_scene(n, width, height, n_cams=2, sh_degree=3, seed=0, dtype=F32, scale
     )
     scene = {key: value.to(dtype) for key, value in scene.items()}
     return dict(scene, width=width, height=height, sh_degree=sh_degree)
+
+
+def tiny_run_config(scene: Path, out: Path, steps: int, **overrides):
+    """The naka-gs config as ns-train builds it, tiny: 2000 random Gaussians, Naka only, no evaluation, the run
+    folder ``<out>/<scene>/naka-gs/run``. ``overrides``: dotted field names (``pipeline.model.sh_degree``) -> values."""
+    config = copy.deepcopy(naka_gs_method.config)
+    config.data = scene
+    config.output_dir = out
+    config.timestamp = "run"
+    config.max_num_iterations = steps
+    config.save_only_latest_checkpoint = False
+    config.steps_per_eval_image = config.steps_per_eval_all_images = 10**6
+    config.vis = "tensorboard"
+    config.viewer.quit_on_train_completion = True
+    config.pipeline.init.triangulate = False
+    config.pipeline.model.num_random = 2000
+    config.pipeline.datamanager.enhance.correction = "none"
+    for dotted, value in overrides.items():
+        *parents, name = dotted.split(".")
+        target = config
+        for parent in parents:
+            target = getattr(target, parent)
+        setattr(target, name, value)
+    return config

@@ -10,7 +10,6 @@ One slow test runs the real console scripts in subprocesses.
 
 from __future__ import annotations
 
-import copy
 import json
 import os
 import shutil
@@ -29,11 +28,11 @@ from nerfstudio.scripts import exporter
 from nerfstudio.scripts import train as ns_train
 from nerfstudio.utils import eval_utils
 
-from naka_gs_plugin.config import METHODS, naka_gs_method
+from naka_gs_plugin.config import METHODS
 from naka_gs_plugin.config_check import run_config_problem
 from naka_gs_plugin.data.lowlight_dataparser import LowLightDataError, LowLightDataParserConfig
 from naka_gs_plugin.sim.toy_scene import ToySceneConfig, write_toy_scene
-from tests.helpers import upstream_sha256
+from tests.helpers import tiny_run_config, upstream_sha256
 
 BIN = Path(sys.executable).parent
 Action = Callable[[], object]
@@ -82,36 +81,13 @@ class Env:
         return run
 
 
-def train_config(scene: Path, out: Path, steps: int = 3, **overrides):
-    """The naka-gs config as ns-train builds it, tiny: 2000 random Gaussians, Naka only, no evaluation."""
-    config = copy.deepcopy(naka_gs_method.config)
-    config.data = scene
-    config.output_dir = out
-    config.timestamp = "run"
-    config.max_num_iterations = steps
-    config.save_only_latest_checkpoint = False
-    config.steps_per_eval_image = config.steps_per_eval_all_images = 10**6
-    config.vis = "tensorboard"
-    config.viewer.quit_on_train_completion = True
-    config.pipeline.init.triangulate = False
-    config.pipeline.model.num_random = 2000
-    config.pipeline.datamanager.enhance.correction = "none"
-    for dotted, value in overrides.items():
-        *parents, name = dotted.split(".")
-        target = config
-        for parent in parents:
-            target = getattr(target, parent)
-        setattr(target, name, value)
-    return config
-
-
 @pytest.fixture(scope="module")
 def trained(toy_scene, tmp_path_factory) -> Path:
     """A 3-step run on the toy scene (8 training views; checkpoint step 2); read-only: rows copy it."""
     work = tmp_path_factory.mktemp("faults_values")
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("NAKA_GS_CACHE", str(work / "cache"))
-        config = train_config(toy_scene, work / "outputs")
+        config = tiny_run_config(toy_scene, work / "outputs", 3)
         ns_train.main(config)
     return config.get_base_dir()
 
@@ -172,7 +148,7 @@ def two_training_frames(env):
     """Two views (the simulator's two-view scene): both equally far from their centre; the spread check once took
     one of them, lower in x, y and z, for the centre and blamed the other."""
     s = write_toy_scene(env.tmp / "two", ToySceneConfig(n_train=2, n_test=1, width=64, height=48))
-    config = train_config(s, env.tmp / "out")
+    config = tiny_run_config(s, env.tmp / "out", 3)
 
     def action():
         ns_train.main(config)
@@ -197,7 +173,7 @@ def one_pixel_scene(env):
         frame.update(w=1, h=1, fl_x=1.0, fl_y=1.0, cx=0.5, cy=0.5)
     meta.update(w=1, h=1)
     path.write_text(json.dumps(meta))
-    return lambda: ns_train.main(train_config(s, env.tmp / "out")), [s]
+    return lambda: ns_train.main(tiny_run_config(s, env.tmp / "out", 3)), [s]
 
 
 def downscale_below_minimum(env):
@@ -213,7 +189,7 @@ def symlink_loop_among_images(env):
     b.unlink()
     os.symlink(b.name, a)  # train/0000.png -> 0001.png -> 0000.png
     os.symlink(a.name, b)
-    return lambda: ns_train.main(train_config(s, env.tmp / "out")), [s]
+    return lambda: ns_train.main(tiny_run_config(s, env.tmp / "out", 3)), [s]
 
 
 def _no_run_folder(env):
@@ -225,7 +201,7 @@ def _no_run_folder(env):
 
 def train_with(env, **overrides) -> Tuple[Action, List[Path]]:
     s = env.scene()
-    return lambda: ns_train.main(train_config(s, env.tmp / "out", **overrides)), [s]
+    return lambda: ns_train.main(tiny_run_config(s, env.tmp / "out", 3, **overrides)), [s]
 
 
 def max_iterations_zero(env):
@@ -252,7 +228,7 @@ def sh_degree_negative_console(env):
 
 def load_dir_of_another_scenes_run(env):
     s, run = env.scene(n_train=3), env.run_copy()
-    return lambda: ns_train.main(train_config(s, env.tmp / "out", load_dir=run / "nerfstudio_models")), [s, run]
+    return lambda: ns_train.main(tiny_run_config(s, env.tmp / "out", 3, load_dir=run / "nerfstudio_models")), [s, run]
 
 
 # --- S4 and R: a hand-edited config.yml ---------------------------------------------------------------

@@ -10,7 +10,6 @@ through their script classes, which all call nerfstudio's ``eval_setup`` as the 
 from __future__ import annotations
 
 import ast
-import copy
 import hashlib
 import importlib
 import inspect
@@ -31,11 +30,10 @@ from nerfstudio.scripts import exporter
 from nerfstudio.scripts import train as ns_train
 from nerfstudio.utils import eval_utils
 
-from naka_gs_plugin.config import naka_gs_method
 from naka_gs_plugin.enhance.stages import NakaStage
 from naka_gs_plugin.errors import USER_ERRORS, user_error_exit
 from naka_gs_plugin.trainer import INTERRUPTED_EXIT_CODE, NakaGSTrainer, NakaGSTrainerConfig
-from tests.helpers import upstream_sha256
+from tests.helpers import tiny_run_config, upstream_sha256
 
 BIN = Path(sys.executable).parent
 
@@ -66,23 +64,8 @@ UPSTREAM_SHA256 = {
 
 # ---------------------------------------------------------------------------------------- helpers
 def _config(scene: Path, out: Path, steps: int = 20, **overrides) -> NakaGSTrainerConfig:
-    """The naka-gs config as ns-train builds it, tiny: 2000 random Gaussians, Naka only, no evaluation."""
-    config = copy.deepcopy(naka_gs_method.config)
-    config.data = scene
-    config.output_dir = out
-    config.timestamp = "run"
-    config.max_num_iterations = steps
-    config.steps_per_save = 10
-    config.save_only_latest_checkpoint = False
-    config.steps_per_eval_image = config.steps_per_eval_all_images = 10**6
-    config.vis = "tensorboard"
-    config.viewer.quit_on_train_completion = True
-    config.pipeline.init.triangulate = False
-    config.pipeline.model.num_random = 2000
-    config.pipeline.datamanager.enhance.correction = "none"
-    for key, value in overrides.items():
-        setattr(config, key, value)
-    return config
+    """:func:`tiny_run_config`, saving every 10 steps."""
+    return tiny_run_config(scene, out, steps, **{"steps_per_save": 10, **overrides})
 
 
 def _train(config: NakaGSTrainerConfig) -> Path:
