@@ -75,12 +75,12 @@ config=$(ls demo/run/*/naka-gs/*/config.yml | head -1)
 psnr=$("$env/bin/python" -c "import json; print(round(json.load(open('eval.json'))['results']['psnr'], 2))")
 
 # The tests against the installed wheel: a copy of the repository without the package's sources, run by the
-# environment's pytest script (which, unlike `python -m pytest`, puts no working folder on the path) from the
-# repository, where the shipped specs' relative paths to ../shared resolve.
+# environment's pytest script (which, unlike `python -m pytest`, puts no working folder on the path).
 mkdir "$tmp/clone" && tar -C "$repo" --exclude=__pycache__ -cf - pyproject.toml README.md LICENSE docs tests \
   benchmarks scripts | tar -xf - -C "$tmp/clone"
-export NAKA_GS_SHARED="$repo/../shared"  # the real scenes some tests read, where a clone has them
-cd "$repo"
+# The real scenes some tests read lie beside a clone, and the shipped specs name them relative to it.
+[ -d "$repo/../shared" ] && ln -s "$(realpath "$repo/../shared")" "$tmp/shared"
+cd "$tmp/clone"
 [ -z "${PYTHONPATH:-}" ] || { say "PYTHONPATH is set: unset it, the tests must import the installed wheel"; exit 1; }
 "$env/bin/pytest" -q -p no:cacheprovider --rootdir "$tmp/clone" -c "$tmp/clone/pyproject.toml" \
   "${tests[@]/#tests/$tmp/clone/tests}" > "$tmp/pytest.log" 2>&1 \

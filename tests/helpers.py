@@ -5,7 +5,6 @@ from __future__ import annotations
 import copy
 import hashlib
 import inspect
-import os
 from pathlib import Path
 from typing import Callable, Dict, Optional, Sequence
 
@@ -14,8 +13,8 @@ import yaml
 
 from naka_gs_plugin.config import FusedAdamConfig, naka_gs_method
 
-SHARED = Path(os.environ.get("NAKA_GS_SHARED", Path(__file__).resolve().parents[2] / "shared"))
-"""The shared folder beside the clone (``NAKA_GS_SHARED`` for tests run from elsewhere, scripts/check_compat.sh)."""
+SHARED = Path(__file__).resolve().parents[2] / "shared"
+"""The shared folder beside the clone."""
 SHARED_DATA = SHARED / "data"
 """The real scenes (LOM, LOL, RealX3D), read in place."""
 SHARED_REFERENCE = SHARED / "reference"

@@ -3,6 +3,7 @@ pinned version lies in its range, and every lower bound is the oldest set's pin 
 
 from __future__ import annotations
 
+import fnmatch
 import re
 import tomllib
 from pathlib import Path
@@ -63,9 +64,12 @@ def test_every_weights_file_has_its_licence_beside_it():
     package = Path(naka_gs_plugin.__file__).parent
     weights = sorted(package.glob("*/weights/*.pt"))
     assert weights and all(list(w.parent.glob("LICENSE-*.txt")) for w in weights), "weights without a licence"
-    assert (ROOT / "LICENSE").is_file()
-    named = {p.parent.name + "/" + p.name for pattern in PROJECT["license-files"] for p in ROOT.glob(pattern)}
-    assert {f"{w.parent.name}/{lic.name}" for w in weights for lic in w.parent.glob("LICENSE-*.txt")} <= named
+    assert (ROOT / "LICENSE").is_file() and "LICENSE" in PROJECT["license-files"]
+    for lic in {lic for w in weights for lic in w.parent.glob("LICENSE-*.txt")}:
+        path = lic.relative_to(package.parent).as_posix()
+        assert any(fnmatch.fnmatch(path, pattern) for pattern in PROJECT["license-files"]), (
+            f"{path}: not in license-files"
+        )
 
 
 REQUIRES = ["torch<2.16,>=2.1.2", "numba<0.69,>=0.60.0", "tyro>=0.8.14", 'pytest>=7; extra == "dev"', "rich>=13.7.1"]
