@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import fnmatch
 import re
-import tomllib
 from pathlib import Path
 from typing import Dict
 
@@ -16,6 +15,8 @@ from packaging.utils import canonicalize_name
 from packaging.version import Version
 
 from naka_gs_plugin.requirements import too_old
+
+tomllib = pytest.importorskip("tomllib", reason="Python < 3.11 has no tomllib; CI runs these on 3.11")
 
 ROOT = Path(__file__).resolve().parents[1]
 PROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
