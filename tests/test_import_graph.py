@@ -6,6 +6,8 @@ import ast
 from pathlib import Path
 from typing import Dict, List, Set
 
+import pytest
+
 PACKAGE = Path(__file__).resolve().parents[1] / "naka_gs_plugin"
 
 LAYERS = ("helpers", "data", "enhance", "points", "model", "sim and method", "scripts")
@@ -101,7 +103,8 @@ def test_console_scripts_live_in_scripts():
     module holds the dataclass ``<Name>`` with ``main()`` (the naming scheme of ``naka_gs_plugin/scripts``)."""
     import dataclasses
     import importlib
-    import tomllib
+
+    tomllib = pytest.importorskip("tomllib", reason="Python < 3.11 has no tomllib; CI runs this on 3.11")
 
     pyproject = tomllib.loads((PACKAGE.parent / "pyproject.toml").read_text())
     entries = pyproject["project"]["scripts"]
