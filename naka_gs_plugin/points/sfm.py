@@ -118,19 +118,21 @@ def database_stats(database: Path) -> Dict[str, int]:
 def database_progress(database: Path) -> Dict[str, int]:
     """How far pycolmap has got, read while it runs: images with keypoints, and image pairs matched and verified.
 
-    A separate read-only SQLite connection: COLMAP keeps its database in WAL mode, where a reader never blocks
-    its writes. Zeros until the tables exist."""
+    A separate SQLite connection that takes no lock at all (``immutable=1``): a reader that locks can race with
+    COLMAP's own opening of the database, which then fails ("No registered database factory succeeded", seen once
+    under load). Without locks it reads the main file only, so counts advance as COLMAP checkpoints its WAL, and a
+    read that meets a page being written fails and is skipped. Zeros until the tables exist."""
     import sqlite3  # here: only the progress display reads the database directly
 
     counts = {"images_with_keypoints": 0, "matched_pairs": 0}
     if not Path(database).is_file():
         return counts
-    connection = sqlite3.connect(f"file:{Path(database).absolute()}?mode=ro", uri=True, timeout=0.5)
+    connection = sqlite3.connect(f"file:{Path(database).absolute()}?mode=ro&immutable=1", uri=True)
     try:
         for key, table in (("images_with_keypoints", "keypoints"), ("matched_pairs", "two_view_geometries")):
             try:
                 counts[key] = int(connection.execute(f"SELECT COUNT(*) FROM {table}").fetchone()[0])
-            except sqlite3.Error:  # not created yet, or busy for a moment
+            except sqlite3.Error:  # not created yet, or a page caught mid-write
                 pass
     finally:
         connection.close()
