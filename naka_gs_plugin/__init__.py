@@ -3,22 +3,22 @@
 Layers, bottom to top; a module imports only its own layer and those below (``tests/test_import_graph.py``):
 
 - helpers: :mod:`.requirements` (versions checked at import), :mod:`.cpu` (thread caps), :mod:`.progress`,
-  :mod:`.metrics`, :mod:`.sheet`, :mod:`.shipped`
-  (the configs and weights shipped in the package);
+  :mod:`.metrics`, :mod:`.sheet`, :mod:`.shipped` (the configs and weights shipped in the package),
+  :mod:`.errors` (the user errors and how a command ends);
 - :mod:`naka_gs_plugin.data`: the ``lowlight-data`` dataparser, the image reader, the cache, safe writes;
+- :mod:`naka_gs_plugin.run`: the guard rails of a run: its folder's claim, its checkpoints, the checks of its
+  configuration, and the one module that touches nerfstudio's internals (:mod:`.run.nerfstudio_hooks`);
 - :mod:`naka_gs_plugin.enhance`: Naka-Rushton pre-enhancement and the chroma-correction network;
 - :mod:`naka_gs_plugin.points`: point sources, alignment, PPM and seeding;
 - :mod:`naka_gs_plugin.model`: the splatfacto-derived model and its CPU rasterizers;
-- side by side: :mod:`naka_gs_plugin.sim` (the low-light scene simulator) and the method's wiring
-  (:mod:`.datamanager`, :mod:`.pipeline`, :mod:`.trainer`, :mod:`.config`, which is kept import-light);
+- :mod:`naka_gs_plugin.sim` (the low-light scene simulator), then the method's wiring, one file above the other:
+  :mod:`.datamanager`, :mod:`.pipeline`, :mod:`.trainer`, and :mod:`.config` (the presets, the roof);
 - :mod:`naka_gs_plugin.scripts` (every console script). The benchmarks live outside the package, in the
   repository's ``benchmarks/``.
 
-Importing the package registers numpy's scalar types as safe globals for ``torch.load``: torch >= 2.6
-loads with ``weights_only=True`` and nerfstudio 1.1.5 writes ``np.float64`` learning rates into its
-checkpoints, which otherwise breaks ``ns-eval``, ``ns-viewer`` and resume on every machine. It also
-lets run configs written before a module moved (:data:`RENAMED`) load: nerfstudio's ``config.yml`` names
-the datamanager's module.
+Importing the package changes nothing in nerfstudio or torch (every hook is turned on only inside a naka-gs command
+or run: :mod:`.run.nerfstudio_hooks`). It lets run configs written before a module moved (:data:`RENAMED`) load:
+nerfstudio's ``config.yml`` names the datamanager's module, and only that old name is mapped.
 """
 
 import importlib as _importlib
@@ -29,27 +29,6 @@ import sys as _sys
 from naka_gs_plugin.requirements import check_installed as _check_installed
 
 _check_installed()  # before torch's import: a too old torch is one line, not an error deep in a kernel
-
-import numpy as _np  # noqa: E402
-import torch as _torch  # noqa: E402
-
-try:  # numpy >= 1.26; ``numpy.core`` is a deprecated alias from numpy 2 on
-    from numpy._core.multiarray import scalar as _scalar
-except ImportError:
-    from numpy.core.multiarray import scalar as _scalar
-
-# Both names: a checkpoint written under numpy 1 says ``numpy.core...``, under numpy 2 ``numpy._core...``.
-# Before torch 2.6 ``torch.load`` defaults to ``weights_only=False`` (nothing to register), and before 2.5 it
-# has no ``add_safe_globals`` with names.
-if _torch.__version__ >= "2.6":
-    _torch.serialization.add_safe_globals(
-        [
-            (_scalar, "numpy.core.multiarray.scalar"),
-            (_scalar, "numpy._core.multiarray.scalar"),
-            _np.dtype,
-            type(_np.dtype(_np.float64)),
-        ]
-    )
 
 RENAMED = {"naka_gs_plugin.data.lowlight_datamanager": "naka_gs_plugin.datamanager"}
 """Old module name -> new one, for saved run configs (``!!python/object:<module>.<class>``)."""

@@ -205,7 +205,7 @@ def keep_freed_memory() -> bool:
     anything sets them with ``mallopt`` (the lean correction forward does, :func:`naka_gs_plugin.enhance.
     lean_ops.reuse_freed_memory`). Pinned at glibc's initial 128 KiB, every training tensor is mapped
     fresh and page-faulted on each step, which made full-size training steps much slower (figures:
-    docs/cpu.md, "Training after the correction ran in the same process")."""
+    records/2026-11-26-allocator-after-correction.md)."""
     libc = glibc()
     if libc is None:
         return False

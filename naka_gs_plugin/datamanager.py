@@ -59,7 +59,7 @@ class LowLightDataset(InputDataset):
     _warned = False
     loads_a_run = False
     """Set by a datamanager built to load a trained run (``ns-eval``, ``ns-render dataset``...): a user error
-    reading an image (:data:`~naka_gs_plugin.errors.USER_ERRORS`) is then the one line ``naka-gs: <message>``
+    reading an image (a :class:`~naka_gs_plugin.errors.UserError`) is then the one line ``naka-gs: <message>``
     (exit status 1). Under training the trainer converts them itself; other callers get the exception."""
 
     @property

@@ -1,38 +1,21 @@
 """The plugin's errors a user can fix, and the one line they end a command with.
 
-A leaf module (it imports nothing of the plugin), so the data layer and the trainer can both use it.
+A leaf module (it imports nothing of the plugin), so the data layer, the trainer and the console scripts can all
+use it, and ``requirements.py`` before torch is imported.
 """
 
 from __future__ import annotations
 
+import errno
 from typing import Optional
 
-USER_ERRORS = frozenset(
-    {
-        "naka_gs_plugin.data.images.ImageReadError",
-        "naka_gs_plugin.data.lowlight_dataparser.LowLightDataError",
-        "naka_gs_plugin.data.pairs.PairsError",
-        "naka_gs_plugin.data.safe_io.UnsafeOutputError",
-        "naka_gs_plugin.enhance.checkpoint.CorrectionWeightsError",
-        "naka_gs_plugin.enhance.checkpoint.CorrectionWeightsNotFoundError",
-        "naka_gs_plugin.enhance.pipeline.EnhanceOptionError",
-        "naka_gs_plugin.enhance.profile.CameraProfileError",
-        "naka_gs_plugin.model.lpips.LPIPSWeightsError",
-        "naka_gs_plugin.model.naka_gs_model.NonFiniteTrainingError",
-        "naka_gs_plugin.model.naka_gs_model.RasterizerOptionError",
-        "naka_gs_plugin.points.align.AlignmentError",
-        "naka_gs_plugin.points.sfm.SfMError",
-        "naka_gs_plugin.points.sources.PointSourceError",
-        "naka_gs_plugin.requirements.UnsupportedVersionError",
-        "naka_gs_plugin.scripts.ppm.PpmOutputError",
-        "naka_gs_plugin.scripts.process_data.ProcessDataError",
-        "naka_gs_plugin.sim.spec.SimSpecError",
-    }
-)
-"""The plugin's exceptions for a problem the user can fix (a bad file, an option out of range), by qualified
-name: each message is one line naming the file or option and the fix. Named, not imported (points.sfm imports
-pycolmap): a class whose module is not loaded cannot have been raised. tests/test_run_folder.py checks that every
-``*Error`` class of the package is here or is a ``SystemExit`` already."""
+
+class UserError(Exception):
+    """Base class of the plugin's exceptions for a problem the user can fix (a bad file, an option out of range):
+    each message is one line naming the file or option and the fix. A command ends on one with the line
+    ``naka-gs: <message>`` (exit status 1, no traceback); any other exception is a bug and keeps its traceback.
+    Subclasses keep the builtin base that callers catch (``class ImageReadError(UserError, ValueError)``).
+    tests/test_run_folder.py checks that every ``*Error`` class of the package is one, or a ``SystemExit``."""
 
 
 def signal_exit_status(signum: int) -> int:
@@ -42,11 +25,42 @@ def signal_exit_status(signum: int) -> int:
 
 
 def is_user_error(err: BaseException) -> bool:
-    """Whether ``err`` is one of :data:`USER_ERRORS` (or a subclass of one)."""
-    return any(f"{cls.__module__}.{cls.__qualname__}" in USER_ERRORS for cls in type(err).__mro__)
+    """Whether ``err`` is a :class:`UserError`."""
+    return isinstance(err, UserError)
 
 
 def user_error_exit(err: BaseException) -> Optional[SystemExit]:
-    """``SystemExit("naka-gs: <message>")`` (exit status 1, no traceback) for one of :data:`USER_ERRORS`, else
-    None: any other exception is a bug and keeps its traceback."""
-    return SystemExit(f"naka-gs: {err}") if is_user_error(err) else None
+    """``SystemExit("naka-gs: <message>")`` (exit status 1, no traceback) for a :class:`UserError`, else None: any
+    other exception is a bug and keeps its traceback. A message of several lines (one per bad item) gets the prefix
+    on each."""
+    if not is_user_error(err):
+        return None
+    return SystemExit("\n".join(f"naka-gs: {line}" for line in (str(err) or type(err).__name__).splitlines()))
+
+
+OS_ERROR_FIXES = {
+    errno.ENOENT: "check the path (a missing input, or a folder that is not there)",
+    errno.EACCES: "check its permissions, or choose a path you may use",
+    errno.EPERM: "check its permissions, or choose a path you may use",
+    errno.EROFS: "that file system is read-only: choose a writable place",
+    errno.ENOSPC: "free disk space there, or choose a place with room",
+    errno.EDQUOT: "free disk space there (your quota is used up), or choose a place with room",
+    errno.ENOTDIR: "a part of the path is a file, not a folder: choose another path",
+    errno.EEXIST: "something is in the way: move it, or choose another path",
+    errno.EISDIR: "it is a folder: pass a file",
+    errno.ENAMETOOLONG: "choose a shorter path",
+    errno.ELOOP: "a symbolic link there leads back to itself: fix the link",
+    errno.EIO: "free disk space there or choose a writable place, and check the disk",
+}
+"""What to do about an :class:`OSError` a command met, by its ``errno``."""
+
+
+def os_error_exit(err: OSError) -> SystemExit:
+    """The one line a command ends with when the operating system refused it a file: ``naka-gs: <path>: <reason> --
+    <fix>`` (exit status 1), e.g. a missing input or an output where a file is in the way. Without a path (an
+    ``OSError`` of a message only, the path in it) the message stands for both."""
+    reason = err.strerror or str(err) or type(err).__name__
+    fix = OS_ERROR_FIXES.get(err.errno) if err.errno is not None else None
+    where = f"{err.filename}: " if err.filename is not None else ""
+    line = f"naka-gs: {where}{reason}" + (f" -- {fix}" if fix and " -- " not in reason else "")
+    return SystemExit(" ".join(line.split("\n")))

@@ -15,7 +15,6 @@ load).
 
 from __future__ import annotations
 
-import sys
 import tempfile
 from contextlib import nullcontext
 from dataclasses import dataclass, field
@@ -39,7 +38,7 @@ from naka_gs_plugin.points.seeding import (
     log_points,
     resolve_seed_points,
 )
-from naka_gs_plugin.trainer import checkpoint_mismatch_exit, loading_error_exit
+from naka_gs_plugin.run import nerfstudio_hooks as hooks
 
 
 @dataclass
@@ -55,12 +54,12 @@ class NakaGSPipelineConfig(VanillaPipelineConfig):
     def setup(self, **kwargs: Any) -> Any:
         """The pipeline, as upstream builds it. When ``eval_setup`` builds it for ``ns-eval``, ``ns-render``,
         ``ns-export`` or ``ns-viewer``, a user error (a scene moved away since training, a bad scene file) is
-        one line naming the scene config.yml records (``trainer.loading_error_exit``)."""
+        one line naming the scene config.yml records (``run.nerfstudio_hooks.loading_error_exit``)."""
         try:
             return super().setup(**kwargs)
         except Exception as err:
             data = self.datamanager.data or self.datamanager.dataparser.data
-            exit_ = loading_error_exit(sys._getframe(1), data, err)
+            exit_ = hooks.loading_error_exit(data, err)
             if exit_ is None:
                 raise
             raise exit_ from None
@@ -131,7 +130,7 @@ class NakaGSPipeline(VanillaPipeline):
         problem = self._checkpoint_mismatch(loaded_state, self.datamanager.config.dataparser.data)
         if problem is None:
             return super().load_pipeline(loaded_state, step)
-        raise checkpoint_mismatch_exit(sys._getframe(1), problem)
+        raise hooks.checkpoint_mismatch_exit(problem)
 
     def _checkpoint_mismatch(self, loaded_state: Dict[str, Any], data: Path) -> Optional[str]:
         """How ``loaded_state`` does not fit this pipeline's parameters (but the Gaussians', which loading resizes)

@@ -14,12 +14,14 @@ from typing import Callable, Iterable, Optional
 from packaging.requirements import Requirement
 from packaging.version import Version
 
+from naka_gs_plugin.errors import UserError
+
 CHECKED = ("torch", "numba", "jaxtyping", "tyro")
 """Where an older version fails at run time, not at import: torch's CPU kernels and probes, numba's compiled
 kernels, jaxtyping's shape annotations, tyro's CLIs."""
 
 
-class UnsupportedVersionError(ImportError):
+class UnsupportedVersionError(UserError, ImportError):
     """A dependency older than this package supports (one line: the version found, the range, the fix)."""
 
 

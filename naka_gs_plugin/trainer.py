@@ -14,7 +14,7 @@
   training images load and are enhanced, which can take minutes) stops at once, nothing to save.
 - With ``--vis tensorboard``, the scalars nerfstudio records at every step (iteration time, ETA, rays per second,
   learning rates) are written at the steps it logs the losses at (:class:`LoggedStepsTensorboardWriter`).
-- One of the plugin's own errors for a problem the user can fix (:data:`~naka_gs_plugin.errors.USER_ERRORS`: a bad scene file,
+- One of the plugin's own errors for a problem the user can fix (:class:`~naka_gs_plugin.errors.UserError`: a bad scene file,
   image, point source) ends ``ns-train`` with the one line ``naka-gs: <message>`` (exit status 1)
   instead of nerfstudio's traceback; any other exception is a bug and keeps its traceback.
 
@@ -34,27 +34,18 @@ whose behaviour this relies on are pinned by source hash in ``tests/test_trainer
 
 from __future__ import annotations
 
-import atexit
-import json
 import os
-import random
-import re
 import secrets
 import signal
-import socket
-import sys
 import threading
-import time
-import zipfile
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
-from types import FrameType
-from typing import Any, Dict, List, Literal, NoReturn, Optional, Sequence, Set, Type, Union
-from unittest import mock
+from typing import Any, Dict, Literal, NoReturn, Optional, Type, Union
 
-import numpy as np
 import torch
+import tyro
+from nerfstudio.configs.base_config import MachineConfig
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.utils import writer
@@ -62,255 +53,30 @@ from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.misc import step_check
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from naka_gs_plugin.config_check import check_config_file, check_run_config, install_excepthook
-from naka_gs_plugin.data.safe_io import UnsafeOutputError, check_new_files
 from naka_gs_plugin.errors import signal_exit_status, user_error_exit
+from naka_gs_plugin.run import nerfstudio_hooks as hooks
+from naka_gs_plugin.run.checkpoints import (
+    PARTIAL_PREFIX,
+    RESUME_STATE,
+    RESUMED_PARTS,
+    checkpoint_step,
+    checkpoints_newest_first,
+    first_valid_checkpoint,
+    fsync_dir,
+    newest_checkpoint,
+    random_state,
+    set_random_state,
+)
+from naka_gs_plugin.run.claim import claim_run_folder, give_up_run_folder
+from naka_gs_plugin.run.config_check import check_config_file, check_run_config
 
 INTERRUPTED_EXIT_CODE = signal_exit_status(signal.SIGINT)  # 130, what shells report for a Ctrl-C'd command
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
-CHECKPOINT_NAME = re.compile(r"step-(\d+)\.ckpt")
-# Upstream's ns-eval/ns-viewer/ns-export parse every name in the checkpoint folder as int(name[first "-" + 1 :
-# first "."]) and take the largest (eval_utils.eval_load_checkpoint). A temporary file left by a kill
-# therefore has to parse, and to step 0, so that it never outranks a real checkpoint.
-PARTIAL_PREFIX = "tmp-0."
-RESUME_STATE = "naka_gs_resume"
-"""The checkpoint's entry for what an exact continuation needs besides upstream's model, optimizers, schedulers and
-gradient scaler: the random generators, the datamanager's place in its view order, the model's densification
-statistics. ``ns-eval`` & co. read only ``pipeline``; checkpoints of older versions have no such entry."""
-RESUMED_PARTS = {"random": "random state", "datamanager": "view order", "model": "densification statistics"}
 PER_STEP_SCALARS = frozenset(
     event.value
     for event in (writer.EventName.ITER_TRAIN_TIME, writer.EventName.ETA, writer.EventName.TRAIN_RAYS_PER_SEC)
 )
 """Scalars nerfstudio's training loop records at every step, besides each optimizer group's ``learning_rate/<group>``."""
-
-
-def checkpoint_step(path: Path) -> Optional[int]:
-    """The step of a ``step-<N>.ckpt`` name, else None."""
-    match = CHECKPOINT_NAME.fullmatch(path.name)
-    return int(match.group(1)) if match else None
-
-
-def is_valid_checkpoint(path: Path) -> bool:
-    """Whether ``path`` is a complete ``torch.save`` archive whose every record matches its CRC-32.
-
-    ``torch.save`` writes a zip with a CRC per record; a truncated file lacks the central directory
-    and a damaged one fails a CRC, both without unpickling anything."""
-    try:
-        with zipfile.ZipFile(path) as archive:
-            return archive.testzip() is None
-    except (OSError, EOFError, zipfile.BadZipFile):
-        return False
-
-
-def checkpoints_newest_first(folder: Path, up_to: Optional[int] = None) -> List[Path]:
-    """The ``step-*.ckpt`` files in ``folder`` (none if it is missing), largest step first; only steps
-    <= ``up_to`` when given."""
-    found = [p for p in folder.glob("step-*.ckpt") if checkpoint_step(p) is not None] if folder.is_dir() else []
-    found = [p for p in found if up_to is None or checkpoint_step(p) <= up_to]  # type: ignore[operator]
-    return sorted(found, key=checkpoint_step, reverse=True)  # type: ignore[arg-type]
-
-
-def newest_checkpoint(folder: Path) -> Optional[Path]:
-    """The ``step-*.ckpt`` in ``folder`` with the largest step, if any."""
-    return next(iter(checkpoints_newest_first(folder)), None)
-
-
-def first_valid_checkpoint(candidates: Sequence[Path], folder: Path, verb: str) -> Optional[Path]:
-    """The first valid checkpoint of ``candidates`` (newest first), else None; when it is not the first,
-    one line names the ones skipped and what ``verb`` ("resuming from", "loading") now uses."""
-    for i, path in enumerate(candidates):
-        if is_valid_checkpoint(path):
-            if i:
-                skipped = ", ".join(p.name for p in candidates[:i])
-                CONSOLE.print(
-                    f"naka-gs: skipping corrupt or truncated {skipped} in {folder}; {verb} {path.name}",
-                    markup=False,
-                    soft_wrap=True,
-                )
-            return path
-    return None
-
-
-def random_state() -> Dict[str, Any]:
-    """The global random generators' states: Python's, numpy's, torch's CPU one and, once CUDA is in use, its
-    devices'. Plain values and tensors, which ``torch.load(weights_only=True)`` reads."""
-    numpy = np.random.get_state(legacy=False)
-    state: Dict[str, Any] = {
-        "python": random.getstate(),
-        "numpy": {
-            "key": numpy["state"]["key"].tolist(),
-            "pos": int(numpy["state"]["pos"]),
-            "has_gauss": int(numpy["has_gauss"]),
-            "gauss": float(numpy["gauss"]),
-        },
-        "torch": torch.get_rng_state(),
-    }
-    if torch.cuda.is_available() and torch.cuda.is_initialized():
-        state["cuda"] = torch.cuda.get_rng_state_all()
-    return state
-
-
-def set_random_state(state: Dict[str, Any]) -> bool:
-    """Put back :func:`random_state`'s generators (CUDA's where this machine has as many devices); False, changing
-    nothing, when ``state`` is not such a state."""
-    # Each state is checked on a generator of its own before any global one changes.
-    python, numpy, torch_cpu = random.Random(), np.random.RandomState(), torch.Generator()
-    try:
-        python.setstate(state["python"])
-        saved = state["numpy"]
-        key = np.array(saved["key"], dtype=np.uint32)
-        numpy.set_state({"bit_generator": "MT19937", "state": {"key": key, "pos": saved["pos"]},
-                         "has_gauss": saved["has_gauss"], "gauss": saved["gauss"]})  # fmt: skip
-        torch_cpu.set_state(state["torch"])
-    except (KeyError, TypeError, ValueError, RuntimeError):
-        return False
-    random.setstate(python.getstate())
-    np.random.set_state(numpy.get_state())
-    torch.set_rng_state(torch_cpu.get_state())
-    cuda = state.get("cuda")
-    if cuda is not None and torch.cuda.is_available() and len(cuda) == torch.cuda.device_count():
-        torch.cuda.set_rng_state_all(cuda)
-    return True
-
-
-def _fsync_dir(folder: Path) -> None:
-    # Makes the rename durable before older checkpoints are deleted; directories cannot be opened on Windows.
-    if hasattr(os, "O_DIRECTORY"):
-        fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-
-
-RUN_CLAIM = ".naka-gs-run"
-"""A run folder's claim: made with an exclusive create before anything else is written to the folder, holding the
-pid, host and a random token of the ns-train that writes it; removed when that training ends."""
-_LIVE_CLAIMS: Set[str] = set()
-"""Tokens of the claims this process holds (a claim copied along with a run folder is not one of them)."""
-
-
-def _claim_holder(claim: Path) -> Optional[dict]:
-    """The claim's record, or None when it is not one (unreadable, or cut short by a crash mid-write)."""
-    try:
-        record = json.loads(claim.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return None
-    return record if isinstance(record, dict) else None
-
-
-def _claim_is_live(record: Optional[dict]) -> bool:
-    """Whether the process that wrote ``record`` may still be writing the folder: on this host, a process with its
-    pid exists (its own token, for this process); on another host, always (its processes cannot be seen)."""
-    if record is None:
-        return False
-    if record.get("host") != socket.gethostname():
-        return True
-    pid = record.get("pid")
-    if not isinstance(pid, int) or pid <= 0:
-        return False
-    if pid == os.getpid():
-        return record.get("token") in _LIVE_CLAIMS
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except OSError:  # exists, owned by another user
-        return True
-    return True
-
-
-def _publish_exclusive(path: Path, text: str) -> None:
-    """Create ``path`` holding ``text``, or raise FileExistsError when it exists: written under a unique name and
-    hard-linked into place, so that no reader ever sees it empty or half written."""
-    tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}-{secrets.token_hex(4)}")
-    tmp.write_text(text, encoding="utf-8")
-    try:
-        os.link(tmp, path)
-    except FileExistsError:
-        raise
-    except OSError:  # a file system without hard links: an exclusive create, then the write
-        with open(path, "x", encoding="utf-8") as fh:
-            fh.write(text)
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
-def claim_run_folder(run: Path) -> str:
-    """Claim the existing folder ``run`` for this process with an exclusive create of its :data:`RUN_CLAIM`; returns
-    the claim's token. The check that a folder is free and taking it are one step, so of two ``ns-train`` started
-    together into one folder exactly one gets it; the other ends with one line. A claim left by a run that died
-    without releasing it (a crash, ``kill -9``; its pid no longer exists on this host) is taken over, with one line.
-    Removed by :func:`release_run_folder` (at the latest when this process exits)."""
-    claim = run / RUN_CLAIM
-    token = secrets.token_hex(8)
-    record = {"pid": os.getpid(), "host": socket.gethostname(), "token": token, "started": time.time()}
-    for _ in range(3):  # a stale claim moved aside can be taken by another process first: look again
-        try:
-            _publish_exclusive(claim, json.dumps(record))
-        except FileExistsError:
-            held = _claim_holder(claim)
-            if _claim_is_live(held):
-                pid, host = held.get("pid"), held.get("host")  # type: ignore[union-attr]
-                raise SystemExit(
-                    f"naka-gs: {run} is claimed by another training (pid {pid} on {host}, its {RUN_CLAIM}); pick "
-                    f"another --timestamp or --output-dir -- if no ns-train is writing there any more, delete {claim}"
-                ) from None
-            _take_over(claim, held)
-            continue
-        _LIVE_CLAIMS.add(token)
-        atexit.register(release_run_folder, claim, token)
-        return token
-    raise SystemExit(f"naka-gs: {run}: other trainings keep claiming it; pick another --timestamp or --output-dir")
-
-
-def _take_over(claim: Path, held: Optional[dict]) -> None:
-    """Remove a stale claim, with one line; moved aside first, so that of two processes taking it over one does."""
-    aside = claim.with_name(f"{RUN_CLAIM}.stale-{os.getpid()}-{secrets.token_hex(4)}")
-    try:
-        os.rename(claim, aside)
-    except FileNotFoundError:
-        return  # another process took it over first
-    if _claim_is_live(_claim_holder(aside)):  # a fresh claim replaced the stale one meanwhile: give it back
-        try:
-            os.link(aside, claim)
-        except FileExistsError:
-            pass
-        aside.unlink(missing_ok=True)
-        return
-    aside.unlink(missing_ok=True)
-    who = f"pid {held.get('pid')}, no longer running" if held is not None else "its claim file was unreadable"
-    CONSOLE.print(
-        f"naka-gs: {claim.parent}: taking over the claim of a training that ended without releasing it ({who})",
-        markup=False,
-        soft_wrap=True,
-    )
-
-
-def _give_up_run_folder(run: Path, token: Optional[str], created: Sequence[Path]) -> None:
-    """Release the claim ``token`` of ``run`` (if any); when this run created the folder (``created``, deepest first),
-    remove the config.yml it wrote (only while it held the claim) and those folders again, unless one holds anything
-    else."""
-    if created and token is not None:
-        (run / "config.yml").unlink(missing_ok=True)
-    if token is not None:
-        release_run_folder(run / RUN_CLAIM, token)
-    for folder in created:
-        try:
-            folder.rmdir()
-        except OSError:
-            return
-
-
-def release_run_folder(claim: Path, token: str) -> None:
-    """Remove ``claim`` if it is still the one this process made with ``token``."""
-    if token not in _LIVE_CLAIMS:
-        return
-    _LIVE_CLAIMS.discard(token)
-    held = _claim_holder(claim)
-    if held is not None and held.get("token") == token:
-        claim.unlink(missing_ok=True)
 
 
 class LoggedStepsTensorboardWriter(writer.TensorboardWriter):
@@ -335,10 +101,15 @@ class LoggedStepsTensorboardWriter(writer.TensorboardWriter):
 class NakaGSTrainer(Trainer):
     """nerfstudio's ``Trainer`` with atomic checkpoints, Ctrl-C / SIGTERM saving and corrupt-checkpoint fallback."""
 
+    def __init__(self, config: TrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
+        if isinstance(config, NakaGSTrainerConfig):
+            config.resolve_device()  # upstream picks the device from the config here
+        super().__init__(config, local_rank, world_size)
+
     def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
         """Upstream's setup, plus a callback that records the last fully completed step. A setup that fails
         removes the run folder ``save_config`` has just made (nothing was trained into it); a user error
-        (:data:`~naka_gs_plugin.errors.USER_ERRORS`: an empty ``--data`` folder, a truncated COLMAP model...) is then one line."""
+        (:class:`~naka_gs_plugin.errors.UserError`: an empty ``--data`` folder, a truncated COLMAP model...) is then one line."""
         self._stop_step: Optional[int] = None  # the step running when the first Ctrl-C / SIGTERM came
         self._stop_name = "interrupted"  # "Ctrl-C" or "SIGTERM" once one came
         self._stop_signum = signal.SIGINT  # the signal that stops the run (a KeyboardInterrupt of its own: Ctrl-C)
@@ -347,7 +118,7 @@ class NakaGSTrainer(Trainer):
         self._catch_stop_signals()
         tensorboard = partial(LoggedStepsTensorboardWriter, every=self.config.logging.steps_per_log)
         try:
-            with mock.patch.object(writer, "TensorboardWriter", tensorboard):  # writer.setup_event_writer makes it
+            with hooks.tensorboard_writer_replaced(tensorboard):
                 super().setup(test_mode=test_mode)
         except KeyboardInterrupt:
             self._discard_new_run_folder()
@@ -368,7 +139,7 @@ class NakaGSTrainer(Trainer):
         Stopping between steps matters: an interrupt inside densification or an optimizer step would
         save parameters and optimizer state that no longer match. Before the first step has finished
         (the training images load and are enhanced inside it) there is nothing to save: it stops at once.
-        A user error (:data:`~naka_gs_plugin.errors.USER_ERRORS`: an unreadable training image, a diverged loss) is one line."""
+        A user error (:class:`~naka_gs_plugin.errors.UserError`: an unreadable training image, a diverged loss) is one line."""
         self._catch_stop_signals()
         try:
             super().train()
@@ -492,7 +263,7 @@ class NakaGSTrainer(Trainer):
         except BaseException:  # a second Ctrl-C mid-write: leave no partial file behind
             partial.unlink(missing_ok=True)
             raise
-        _fsync_dir(self.checkpoint_dir)
+        fsync_dir(self.checkpoint_dir)
         if self.config.save_only_latest_checkpoint:
             for old in self.checkpoint_dir.glob("*.ckpt"):
                 if old != path:
@@ -610,101 +381,13 @@ class NakaGSTrainer(Trainer):
         )
 
 
-_IMPORTED_AT = time.time()
-"""When this process imported the plugin: every ``ns-*`` command does so before it parses its options."""
+@dataclass
+class NakaGSMachineConfig(MachineConfig):
+    """nerfstudio's machine options, with a device that defaults to the machine's own."""
 
-
-def _eval_setup_config_path(frame: Optional[FrameType]) -> Optional[Path]:
-    """The config.yml that nerfstudio's ``eval_setup`` is loading when ``frame`` is that call, else None.
-
-    ``eval_setup(config_path)`` is where ``ns-eval``, ``ns-render``, ``ns-export``, ``ns-viewer`` (and our
-    demo and scene sheet) load a run, and it asks the config for its checkpoint folder right after reading
-    it. The config's own location is known only there: ``eval_setup`` parses the file's text, so the YAML
-    loader never sees the path, and ``--load-config`` on the command line is one spelling of it in four
-    CLIs (and means something else to ``ns-train``). Reading eval_setup's argument from the calling frame
-    is exact for every caller; the upstream function is pinned by source hash in tests/test_run_folder.py."""
-    if frame is None or frame.f_code.co_name != "eval_setup":
-        return None
-    if frame.f_globals.get("__name__") != "nerfstudio.utils.eval_utils":
-        return None
-    path = frame.f_locals.get("config_path")
-    return Path(path) if path is not None else None
-
-
-def _remove_new_empty_output_dir(eval_setup_frame: FrameType) -> None:
-    """``ns-export`` makes its ``--output-dir`` before it loads the checkpoint; when that load fails, remove
-    the folder again if it is empty and was made by this process (changed after the plugin was imported)."""
-    caller = eval_setup_frame.f_back
-    owner = caller.f_locals.get("self") if caller is not None else None
-    out = getattr(owner, "output_dir", None)
-    if type(owner).__module__ != "nerfstudio.scripts.exporter" or not isinstance(out, Path):
-        return
-    try:
-        if out.is_dir() and not any(out.iterdir()) and out.stat().st_mtime >= _IMPORTED_AT - 1.0:
-            out.rmdir()
-    except OSError:
-        pass
-
-
-EXPORTED_FILES = {
-    "ExportGaussianSplat": lambda command: [command.output_filename],
-    "ExportCameraPoses": lambda command: ["transforms_train.json", "transforms_eval.json"],
-}
-"""The files that ``ns-export``'s commands for a splat model write into ``--output-dir``, by command class."""
-
-
-def _check_export_target(eval_setup_frame: FrameType) -> None:
-    """``ns-export`` writes into its ``--output-dir`` without looking: refuse, before the run is loaded, an
-    ``--output-dir`` that is a file, or one that already holds a file the export would replace."""
-    caller = eval_setup_frame.f_back
-    owner = caller.f_locals.get("self") if caller is not None else None
-    out = getattr(owner, "output_dir", None)
-    if type(owner).__module__ != "nerfstudio.scripts.exporter" or not isinstance(out, Path):
-        return
-    names = EXPORTED_FILES.get(type(owner).__name__, lambda command: [])(owner)
-    fix = "choose another --output-dir" + (" or --output-filename" if hasattr(owner, "output_filename") else "")
-    try:
-        check_new_files(out, names, "--output-dir", fix)
-    except UnsafeOutputError as err:
-        raise SystemExit(f"naka-gs: {err}") from None
-
-
-install_excepthook(_remove_new_empty_output_dir)  # a config.yml eval_setup cannot read: one line
-
-
-def loading_error_exit(frame: Optional[FrameType], data: Optional[Path], err: BaseException) -> Optional[SystemExit]:
-    """The one line to exit with when ``err``, a user error (:data:`~naka_gs_plugin.errors.USER_ERRORS`), was raised while nerfstudio's
-    ``eval_setup`` (``frame``) set up the pipeline of the run it loads, whose scene is ``data``; else None.
-
-    A scene folder no longer where config.yml records it (moved or deleted after training) is named with the
-    fix: config.yml is the only place ``ns-eval`` / ``ns-render`` / ``ns-export`` / ``ns-viewer`` learn the
-    scene from. The output folder ``ns-export`` has just made is removed again."""
-    config_path = _eval_setup_config_path(frame)
-    exit_ = user_error_exit(err)
-    if frame is None or config_path is None or exit_ is None:
-        return None
-    _remove_new_empty_output_dir(frame)
-    if data is None or Path(data).is_dir():
-        return exit_
-    where = f"{data}" if Path(data).is_absolute() else f"{data} (relative: looked for in {Path.cwd()})"
-    return SystemExit(
-        f"naka-gs: {config_path} records --data {where}, and no scene folder is there (moved or deleted since "
-        "training): move the scene back there, or edit the data: path at the top of that config.yml"
-    )
-
-
-def checkpoint_mismatch_exit(loader: FrameType, problem: str) -> SystemExit:
-    """The one line for a checkpoint that does not fit the pipeline it is loaded into (``problem``), loaded by
-    ``loader``: upstream's ``eval_load_checkpoint`` (``eval_setup``: ns-eval & co.) or ``Trainer._load_checkpoint``
-    (a resumed ns-train); each names the file in a local of its own (pinned by source hash in the tests)."""
-    path = loader.f_locals.get("load_path") or loader.f_locals.get("load_checkpoint") or "(unnamed)"
-    config_path = _eval_setup_config_path(loader.f_back)
-    if config_path is not None:
-        _remove_new_empty_output_dir(loader.f_back)
-        fix = f"point data: in {config_path} back at the scene this run was trained on"
-    else:
-        fix = "resume a run only with the --data it was trained on, or leave out --load-dir to train from scratch"
-    return SystemExit(f"naka-gs: checkpoint {path}: {problem} -- {fix}")
+    device_type: Literal["auto", "cpu", "cuda", "mps"] = "auto"
+    """auto: cuda where this machine has it, else cpu (nerfstudio's default, cuda, dies without one). The naka-gs
+    preset's schedule follows it: see ``ns-train naka-gs --help``'s description."""
 
 
 @dataclass
@@ -717,6 +400,34 @@ class NakaGSTrainerConfig(TrainerConfig):
     copied or moved run loads its own checkpoints; of those, the newest valid one."""
 
     _target: Type = field(default_factory=lambda: NakaGSTrainer)
+    machine: NakaGSMachineConfig = field(default_factory=NakaGSMachineConfig)
+    steps_per_eval_image: Optional[int] = 500
+    """Steps between evaluations of one test view during training; None: by device (the preset's ``by_device``)."""
+    steps_per_eval_all_images: Optional[int] = 25000
+    """Steps between evaluations of all test views during training; None: by device (the preset's ``by_device``)."""
+    by_device: tyro.conf.Suppress[Dict[str, Dict[str, Any]]] = field(default_factory=dict)
+    """What the run takes by device (``cpu`` / ``cuda``): dotted option -> value, set where the option is None once
+    the run's device is known (:meth:`resolve_device`), then emptied. Filled by the presets, not a command-line
+    option."""
+
+    def resolve_device(self) -> None:
+        """Settle ``--machine.device-type auto`` (CUDA where this machine has it, else the CPU), then set every option
+        left to the device: the :attr:`by_device` entries for it and the model's schedule. Idempotent; called before
+        the run's config.yml is written and before it trains."""
+        if self.machine.device_type == "auto":
+            self.machine.device_type = "cuda" if torch.cuda.is_available() else "cpu"
+        device = "cuda" if self.machine.device_type == "cuda" else "cpu"
+        for dotted, value in (getattr(self, "by_device", None) or {}).get(device, {}).items():
+            *parents, name = dotted.split(".")
+            owner: Any = self
+            for part in parents:
+                owner = owner[part] if isinstance(owner, dict) else getattr(owner, part)
+            if owner is not None and getattr(owner, name, None) is None:
+                setattr(owner, name, value)
+        self.by_device = {}
+        resolve = getattr(self.pipeline.model, "resolve_schedule", None)
+        if resolve is not None:
+            resolve(device)
 
     def __post_init__(self) -> None:
         """``ns-train naka-gs --load-config FILE`` takes every option from FILE: check it (YAML, a run's
@@ -729,7 +440,10 @@ class NakaGSTrainerConfig(TrainerConfig):
         it (``--load-dir`` / ``--load-checkpoint`` inside it). ``ns-train`` calls this just before it writes
         config.yml; programs that manage their own run folders (benchmarks.grid) call ``save_config`` only.
         ``ns-train --load-config <a run's config.yml>`` ends here too: its file fixes the run folder, so the
-        refusal also says what to change in the file. Values out of range are refused first (one line)."""
+        refusal also says what to change in the file. Values out of range are refused first (one line). The run's
+        device settles here (:meth:`resolve_device`), and the naka-gs hooks turn on."""
+        hooks.activate()
+        self.resolve_device()
         check_run_config(self, None)
         super().set_timestamp()
         self._refuse_a_run_folder_in_use()
@@ -756,6 +470,8 @@ class NakaGSTrainerConfig(TrainerConfig):
     def save_config(self) -> None:
         """Upstream's config.yml, after checking ``--data`` exists; a folder that cannot be made or written is
         one line. Records the folders it creates, which a failed ``NakaGSTrainer.setup`` removes again."""
+        hooks.activate()
+        self.resolve_device()
         data = self.pipeline.datamanager.data or self.pipeline.datamanager.dataparser.data
         if data is not None and not Path(data).exists():
             raise SystemExit(
@@ -772,7 +488,7 @@ class NakaGSTrainerConfig(TrainerConfig):
             super().save_config()
         except BaseException as err:
             # Refused by another run's claim: the folders are that run's, whoever made them.
-            _give_up_run_folder(run, token, created if token is not None or isinstance(err, OSError) else [])
+            give_up_run_folder(run, token, created if token is not None or isinstance(err, OSError) else [])
             if isinstance(err, OSError):
                 raise SystemExit(
                     f"naka-gs: cannot write the run folder {run} ({err.strerror or err}); pick a writable --output-dir"
@@ -786,7 +502,7 @@ class NakaGSTrainerConfig(TrainerConfig):
         failed), also remove the config.yml and the folders :meth:`save_config` created, unless one holds anything
         else (another process's run)."""
         created = self.__dict__.pop("_created_folders", None) or []
-        _give_up_run_folder(
+        give_up_run_folder(
             self.get_base_dir(), self.__dict__.pop("_run_claim", None), created if remove_created else []
         )
 
@@ -799,16 +515,16 @@ class NakaGSTrainerConfig(TrainerConfig):
     def get_checkpoint_dir(self) -> Path:
         """Upstream's checkpoint folder; when ``eval_setup`` asks, that of the folder config.yml is in, with
         ``load_step`` set to its newest valid checkpoint (one line names any skipped)."""
-        frame = sys._getframe(1)
-        config_path = _eval_setup_config_path(frame)
-        if config_path is None:
+        frame, config_path = hooks.calling_eval_setup()
+        if frame is None or config_path is None:
             return super().get_checkpoint_dir()
+        hooks.activate()  # eval_setup is loading a naka-gs run
         try:
             check_run_config(self, config_path)
         except SystemExit:
-            _remove_new_empty_output_dir(frame)
+            hooks.remove_new_empty_output_dir(frame)
             raise
-        _check_export_target(frame)
+        hooks.check_export_target(frame)
         here = config_path.absolute().parent
         recorded = super().get_base_dir()
         if recorded.resolve() != here.resolve():
@@ -825,7 +541,7 @@ class NakaGSTrainerConfig(TrainerConfig):
         candidates = checkpoints_newest_first(folder, up_to=up_to)
         chosen = first_valid_checkpoint(candidates, folder, "loading")
         if chosen is None:
-            _remove_new_empty_output_dir(frame)
+            hooks.remove_new_empty_output_dir(frame)
             if not candidates:
                 raise SystemExit(
                     f"naka-gs: {folder}: no step-*.ckpt checkpoint there"

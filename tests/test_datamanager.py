@@ -18,8 +18,8 @@ from naka_gs_plugin.datamanager import LowLightDatamanagerConfig, MissingGroundT
 from naka_gs_plugin.enhance.chroma import capture_chroma
 from naka_gs_plugin.enhance.naka import naka_enhance
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig
+from naka_gs_plugin.run.checkpoints import random_state, set_random_state
 from naka_gs_plugin.scripts.enhance import Enhance
-from naka_gs_plugin.trainer import random_state, set_random_state
 
 
 def _dm(scene, dtype="float32", **enhance):

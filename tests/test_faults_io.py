@@ -31,9 +31,10 @@ from naka_gs_plugin.data.images import read_rgb
 from naka_gs_plugin.data.lowlight_dataparser import LowLightDataError, downscaled_copy
 from naka_gs_plugin.enhance.pipeline import Enhancer
 from naka_gs_plugin.errors import signal_exit_status
+from naka_gs_plugin.run.claim import RUN_CLAIM
 from naka_gs_plugin.scripts import process_data
 from naka_gs_plugin.scripts import sim as sim_cli
-from naka_gs_plugin.trainer import RUN_CLAIM, NakaGSTrainerConfig
+from naka_gs_plugin.trainer import NakaGSTrainerConfig
 from tests.helpers import TINY_VIEWS, write_spec
 from tests.test_bad_inputs import (
     NAKA,
@@ -308,7 +309,7 @@ CASES: List[Tuple[Callable[[Env], Tuple[Action, List[Path]]], Callable[[Env], ob
         pd_identical_copies_console,
         lambda env: Exits(
             1,
-            f"naka-gs-process-data: {env.tmp}/photos/IMG_001.png is an identical copy of {env.tmp}/photos/IMG_000.png "
+            f"naka-gs: {env.tmp}/photos/IMG_001.png is an identical copy of {env.tmp}/photos/IMG_000.png "
             "(5 copies in all) -- structure from motion needs photos from different viewpoints: keep one of each and "
             f"move the copies out of {env.tmp}/photos",
         ),
@@ -316,16 +317,16 @@ CASES: List[Tuple[Callable[[Env], Tuple[Action, List[Path]]], Callable[[Env], ob
     (
         sim_ten_thousand_views_console,
         lambda env: Exits(
-            2,
-            f"naka-gs-sim: {env.tmp}/s.yaml: field 'source.procedural.n_train': 10000 training + 1 test views is over "
+            1,
+            f"naka-gs: {env.tmp}/s.yaml: field 'source.procedural.n_train': 10000 training + 1 test views is over "
             "the limit of 2000 -- a simulated scene needs tens to a few hundred views: lower n_train / n_test",
         ),
     ),
     (
         sim_huge_images_console,
         lambda env: Exits(
-            2,
-            f"naka-gs-sim: {env.tmp}/s.yaml: field 'source.procedural': 201 views of 8000x6000 would write about "
+            1,
+            f"naka-gs: {env.tmp}/s.yaml: field 'source.procedural': 201 views of 8000x6000 would write about "
             "115 GB of images, over the limit of 16 GB -- lower n_train, n_test, width or height",
         ),
     ),
@@ -381,12 +382,12 @@ def test_fault(make, expect, toy_scene, tmp_path, monkeypatch, capsys):
 
 def _release_claims(tmp_path: Path) -> None:
     """Drop the claims this test's configs still hold (ns-train releases its claim when training ends)."""
-    from naka_gs_plugin import trainer
+    from naka_gs_plugin.run.claim import release_run_folder
 
     for claim in tmp_path.rglob(RUN_CLAIM):
         held = json.loads(claim.read_text())
         if held.get("pid") == os.getpid():
-            trainer.release_run_folder(claim, held.get("token"))
+            release_run_folder(claim, held.get("token"))
 
 
 # --- stopping a command: Ctrl-C and SIGTERM -------------------------------------------------------------
@@ -456,7 +457,7 @@ def test_sigterm_in_process_data_matching_removes_the_unfinished_scene(toy_scene
     assert code == signal_exit_status(signal.SIGTERM) == 143, log
     last = log.strip().splitlines()[-1]
     assert last == (
-        f"naka-gs-process-data: SIGTERM: stopped; its unfinished output was removed and {out} was not created; run "
+        f"naka-gs: SIGTERM: stopped; its unfinished output was removed and {out} was not created; run "
         "it again to make it"
     ), log
     assert "Traceback" not in log and "Checking the photos for copies: 4/4" in log, log
@@ -472,7 +473,7 @@ def test_ctrl_c_in_sim_removes_the_unfinished_scene(tmp_path):
     code, log = _stop_when([SIM, str(spec), "--out", str(out)], "naka-gs-sim s: 1/1501", signal.SIGINT, tmp_path)
     assert code == signal_exit_status(signal.SIGINT) == 130, log
     assert log.strip().splitlines()[-1] == (
-        f"naka-gs-sim: Ctrl-C: stopped; its unfinished output was removed and {out} was not created; run it again to "
+        f"naka-gs: Ctrl-C: stopped; its unfinished output was removed and {out} was not created; run it again to "
         "make it"
     ), log
     assert "Traceback" not in log

@@ -10,29 +10,34 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "naka_gs_plugin"
 
-LAYERS = ("helpers", "data", "enhance", "points", "model", "sim and method", "scripts")
-"""Bottom to top (``naka_gs_plugin/__init__.py`` describes each)."""
+FLOORS = ("helpers", "data", "run", "enhance", "points", "model", "sim", "method", "scripts")
+"""Bottom to top (``naka_gs_plugin/__init__.py`` describes each): a module imports only its own floor and those
+below, and on the method's floor only the files below it in :data:`METHOD`."""
 HELPERS = {"cpu", "progress", "metrics", "sheet", "shipped", "errors", "requirements"}
-METHOD = {"datamanager", "pipeline", "trainer", "config", "config_check"}
-"""The method's wiring, side by side with the simulator above the model."""
+METHOD = ("datamanager", "pipeline", "trainer", "config")
+"""The method's wiring, one file above the other: the presets (``config``) are the roof."""
 
 
-def layer(module: str) -> int:
-    """Index in :data:`LAYERS` of a ``naka_gs_plugin`` module (dotted name without the package)."""
+def rank(module: str) -> tuple:
+    """Where a ``naka_gs_plugin`` module (dotted name without the package) stands: (floor, place on the floor)."""
     top = module.split(".")[0]
     if module == "" or module in HELPERS:
-        return 0
-    if top == "scripts":
-        return 6
-    if module in METHOD or top == "sim":
-        return 5
-    if top in ("data", "enhance", "points", "model"):
-        return LAYERS.index(top)
-    raise AssertionError(f"naka_gs_plugin.{module} has no layer: place it in tests/test_import_graph.py")
+        return (0, 0)
+    if module in METHOD:
+        return (FLOORS.index("method"), METHOD.index(module))
+    if top in FLOORS[1:]:
+        return (FLOORS.index(top), 0)
+    raise AssertionError(f"naka_gs_plugin.{module} has no floor: place it in tests/test_import_graph.py")
 
 
 def imports() -> Dict[str, Set[str]]:
-    """Every module's ``naka_gs_plugin`` imports, top-level and inside functions (dotted, without the package)."""
+    """Every module's ``naka_gs_plugin`` imports, top-level and inside functions (dotted, without the package); an
+    import of a package counts as an import of its ``__init__``, ``from package import module`` as one of that
+    module."""
+    modules = set()
+    for path in PACKAGE.rglob("*.py"):
+        parts = path.relative_to(PACKAGE).with_suffix("").parts
+        modules.add(".".join(parts[:-1] if parts[-1] == "__init__" else parts))
     graph = {}
     for path in sorted(PACKAGE.rglob("*.py")):
         parts = path.relative_to(PACKAGE).with_suffix("").parts
@@ -41,20 +46,69 @@ def imports() -> Dict[str, Set[str]]:
         for node in ast.walk(ast.parse(path.read_text())):
             names: List[str] = []
             if isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-                names = [node.module]
+                names = [node.module] + [f"{node.module}.{alias.name}" for alias in node.names]
             elif isinstance(node, ast.Import):
                 names = [alias.name for alias in node.names]
-            found |= {name.partition(".")[2] for name in names if name.split(".")[0] == "naka_gs_plugin"}
+            for name in names:
+                if name.split(".")[0] != "naka_gs_plugin":
+                    continue
+                dotted = name.partition(".")[2]
+                if dotted in modules and dotted != module:
+                    found.add(dotted)
         graph[module] = found
     return graph
 
 
-def test_no_module_imports_a_layer_above_it():
+def circles(graph: Dict[str, Set[str]]) -> List[List[str]]:
+    """The graph's strongly connected components of more than one module (Tarjan's algorithm)."""
+    index: Dict[str, int] = {}
+    low: Dict[str, int] = {}
+    stack: List[str] = []
+    found: List[List[str]] = []
+
+    def visit(node: str) -> None:
+        index[node] = low[node] = len(index)
+        stack.append(node)
+        for dep in graph.get(node, ()):
+            if dep not in index:
+                visit(dep)
+                low[node] = min(low[node], low[dep])
+            elif dep in stack:
+                low[node] = min(low[node], index[dep])
+        if low[node] == index[node]:
+            component = []
+            while True:
+                top = stack.pop()
+                component.append(top)
+                if top == node:
+                    break
+            if len(component) > 1:
+                found.append(sorted(component))
+
+    for node in sorted(graph):
+        if node not in index:
+            visit(node)
+    return found
+
+
+def test_the_file_level_import_graph_has_no_circle():
+    """Every import statement, lazy ones included, file by file: no two modules import each other, however far
+    round."""
+    assert not circles(imports()), circles(imports())
+
+
+def test_circles_finds_a_circle_of_three():
+    assert circles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+
+
+def test_no_module_imports_a_floor_above_it():
+    """Nothing runs back up: not to a higher floor, and on the method's floor not to a file above (the trainer
+    never imports the presets, the pipeline never the trainer)."""
     upward = [
-        f"naka_gs_plugin.{module} ({LAYERS[layer(module)]}) imports naka_gs_plugin.{dep} ({LAYERS[layer(dep)]})"
+        f"naka_gs_plugin.{module} {rank(module)} imports naka_gs_plugin.{dep} {rank(dep)}"
         for module, deps in imports().items()
         for dep in sorted(deps)
-        if layer(dep) > layer(module)
+        if rank(dep) > rank(module) and not (module == "" or dep.startswith(module + "."))
     ]
     assert not upward, "imports against the package order:\n" + "\n".join(upward)
 
@@ -140,3 +194,13 @@ def test_gpu_side_modules_import_without_nerfstudio():
     )
     proc = subprocess.run([sys.executable, "-c", block], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr[-2000:]
+
+
+def test_no_module_is_over_700_lines():
+    """Rooms that say what they are: a module past 700 lines holds more than one idea, split it."""
+    long = {
+        str(path.relative_to(PACKAGE.parent)): n
+        for path in sorted(PACKAGE.rglob("*.py"))
+        if (n := len(path.read_text().splitlines())) > 700
+    }
+    assert not long, long

@@ -107,7 +107,7 @@ def test_a_wrong_lpips_weights_file_stops_in_one_line(tmp_path):
     other = tmp_path / "other.pth"
     torch.save({"conv.weight": torch.zeros(3, 3)}, other)
     for path, says in ((truncated, "not a readable torch weights file"), (other, "not AlexNet weights")):
-        with pytest.raises(LPIPSWeightsError) as info:  # one line "naka-gs: ..." under ns-train (USER_ERRORS)
+        with pytest.raises(LPIPSWeightsError) as info:  # one line "naka-gs: ..." under ns-train (a UserError)
             _model(lpips_weights=path)
         message = str(info.value)
         assert "\n" not in message and str(path) in message and says in message, message

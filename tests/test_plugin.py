@@ -1,6 +1,5 @@
 """Plugin registration as a user sees it: ns-train lists naka-gs and its options."""
 
-import json
 import os
 import re
 import subprocess
@@ -69,7 +68,7 @@ def test_method_config_is_cpu_safe_and_light():
         "m = c.naka_gs_method.config;"
         "import torch;"
         "assert m.method_name == 'naka-gs';"
-        "assert m.machine.device_type == ('cuda' if torch.cuda.is_available() else 'cpu');"
+        "assert m.machine.device_type == 'auto';"
         "assert 'nerfstudio.configs.method_configs' not in sys.modules;"
         "assert not any(k.startswith(('open3d', 'kornia')) for k in sys.modules)"
     )
@@ -94,21 +93,41 @@ def test_config_of_a_run_with_init_on_the_model_still_loads():
     assert fresh.init.points == "random"
 
 
+def _resolved(spec, device: str, cuda: bool = False):
+    """A copy of a preset's config as a run on ``--machine.device-type device`` settles it, on a machine with or
+    without CUDA (stood in)."""
+    import copy
+    from unittest import mock
+
+    import torch
+
+    config = copy.deepcopy(spec.config)
+    config.machine.device_type = device
+    with mock.patch.object(torch.cuda, "is_available", lambda: cuda):
+        config.resolve_device()
+    return config
+
+
+def _schedule(config) -> list:
+    m = config.pipeline.model
+    return [
+        config.max_num_iterations, config.optimizers["means"]["scheduler"].max_steps, m.stop_split_at,
+        m.resolution_schedule, config.machine.device_type, config.optimizers["means"]["optimizer"].fused,
+        config.steps_per_eval_image, config.steps_per_eval_all_images,
+    ]  # fmt: skip
+
+
 def test_cpu_schedule_stops_a_10k_decay_at_7k():
     """On a CPU the run is 7k steps of a 10k schedule: learning rates decay over 10k, densification
-    stops at half of it (docs/real-scenes.md, "Slower decay"); on CUDA 7k of splatfacto's 30k."""
+    stops at half of it (records/2026-11-27-levers.md)."""
     from naka_gs_plugin import config
 
-    m = config.naka_gs_method.config
+    m = _resolved(config.naka_gs_method, "cpu")
     decaying = {k: v["scheduler"] for k, v in m.optimizers.items() if v["scheduler"] is not None}
     assert {"means", "appearance"} <= set(decaying)
-    assert {s.max_steps for s in decaying.values()} == {config.DECAY_STEPS}
-    if config.CUDA:
-        assert (m.max_num_iterations, config.DECAY_STEPS) == (7000, 30000)
-    else:
-        assert (m.max_num_iterations, config.DECAY_STEPS) == (7000, 10000)
-        assert m.pipeline.model.stop_split_at == config.DECAY_STEPS // 2
-        assert m.pipeline.model.stop_split_at < m.max_num_iterations
+    assert {s.max_steps for s in decaying.values()} == {10000}
+    assert m.max_num_iterations == 7000
+    assert m.pipeline.model.stop_split_at == 10000 // 2 < m.max_num_iterations
 
 
 def test_the_fast_preset_is_the_default_schedule_shrunk():
@@ -116,61 +135,101 @@ def test_the_fast_preset_is_the_default_schedule_shrunk():
     and resolution milestone at the same fraction of it. Everything else (data, enhancement, model options) is
     the default's."""
     from naka_gs_plugin import config
+    from naka_gs_plugin.model.schedule import CPU_SCHEDULE, cpu_schedule
 
-    fast, default = config.naka_gs_fast_method.config, config.naka_gs_method.config
+    fast, default = _resolved(config.naka_gs_fast_method, "cpu"), _resolved(config.naka_gs_method, "cpu")
     model = fast.pipeline.model
     decay = fast.optimizers["means"]["scheduler"].max_steps
     assert (fast.max_num_iterations, decay) == (3000, 4300)
     assert model.stop_split_at == decay // 2 and model.resolution_schedule == round(0.3 * decay)
     assert model.stop_screen_size_at < model.stop_split_at < fast.max_num_iterations
-    # The default's own schedule is the same function of its decay (splatfacto's values on CUDA), except
-    # that on a CPU its images reach full size only for the last 500 steps (splatfacto: 2x2 downscales).
-    if not config.CUDA:
-        own = {k: getattr(default.pipeline.model, k) for k in config.CPU_SCHEDULE}
-        assert {k: v for k, v in own.items() if k != "resolution_schedule"} == {
-            k: v for k, v in config.cpu_schedule(config.DECAY_STEPS).items() if k != "resolution_schedule"
-        }
-        full_size_from = default.pipeline.model.num_downscales * own["resolution_schedule"]
-        assert default.max_num_iterations - full_size_from == 500
+    # The default's own schedule on a CPU is the same function of its decay, except that its images reach full size
+    # only for the last 500 steps (splatfacto: 2x2 downscales).
+    own = {k: getattr(default.pipeline.model, k) for k in CPU_SCHEDULE}
+    assert {k: v for k, v in own.items() if k != "resolution_schedule"} == {
+        k: v for k, v in cpu_schedule(10000).items() if k != "resolution_schedule"
+    }
+    full_size_from = default.pipeline.model.num_downscales * own["resolution_schedule"]
+    assert default.max_num_iterations - full_size_from == 500
     assert fast.pipeline.datamanager == default.pipeline.datamanager
     assert fast.pipeline.model.rasterizer == default.pipeline.model.rasterizer
     assert fast.method_name == "naka-gs-fast"
 
 
-def test_on_a_gpu_the_default_stops_splatfactos_schedule_at_7k_and_the_fast_preset_is_the_cpus():
-    """With CUDA (stood in for: the presets are chosen when the config module is imported), ``naka-gs`` keeps
-    splatfacto's 30k schedule (densification until 15k, full size from 6k) and stops it at 7k, where it scored best
-    on the LOM protocol on a GPU (docs/cuda.md); ``naka-gs-fast`` is the CPU's 3k of 4.3k; both train on the GPU."""
+def test_the_schedule_follows_the_device_the_user_chose_not_the_machine():
+    """With CUDA (stood in), ``naka-gs`` keeps splatfacto's 30k schedule (densification until 15k, full size from
+    6k) and stops it at 7k, where it scored best on the LOM protocol on a GPU (records/2026-12-04-gpu-presets-h200.md);
+    ``naka-gs-fast`` is the CPU's 3k of 4.3k. ``--machine.device-type cpu`` on that CUDA machine gets the CPU
+    schedule, and ``auto`` is the machine's own device."""
+    from naka_gs_plugin import config
+
+    fused = True if config.FUSED_ADAM else None
+    gpu = [7000, 30000, 15000, 3000, "cuda", None, 100, 1000]
+    cpu = [7000, 10000, 5000, 3250, "cpu", fused, 500, 3500]
+    assert _schedule(_resolved(config.naka_gs_method, "auto", cuda=True)) == gpu
+    assert _schedule(_resolved(config.naka_gs_method, "cuda", cuda=True)) == gpu
+    assert _schedule(_resolved(config.naka_gs_method, "cpu", cuda=True)) == cpu
+    assert _schedule(_resolved(config.naka_gs_method, "auto", cuda=False)) == cpu
+    assert _schedule(_resolved(config.naka_gs_fast_method, "cuda", cuda=True)) == [
+        3000, 4300, 2150, 1290, "cuda", None, 100, 1000
+    ]  # fmt: skip
+    assert _schedule(_resolved(config.naka_gs_fast_method, "cpu", cuda=True)) == [
+        3000, 4300, 2150, 1290, "cpu", fused, 500, 1500
+    ]  # fmt: skip
+
+
+def test_an_option_the_user_set_is_kept_whatever_the_device():
+    """The device fills only what was left to it (None): ``--pipeline.model.stop-split-at 4000`` and a scheduler's
+    ``max_steps`` stay as given on either device."""
+    import copy
+
+    from naka_gs_plugin import config
+
+    spec = copy.deepcopy(config.naka_gs_method)
+    spec.config.pipeline.model.stop_split_at = 4000
+    spec.config.optimizers["means"]["scheduler"].max_steps = 1234
+    for device in ("cpu", "cuda"):
+        resolved = _resolved(spec, device, cuda=True)
+        assert resolved.pipeline.model.stop_split_at == 4000
+        assert resolved.optimizers["means"]["scheduler"].max_steps == 1234
+        assert resolved.optimizers["quats"]["scheduler"] is None
+
+
+def test_help_is_the_same_with_and_without_cuda():
+    """Nothing probes the machine at import: ``ns-train naka-gs --help`` reads the same on a CUDA machine (stood in)
+    as on this one, and says which schedule each device gets."""
     probe = (
-        "import json, torch\n"
-        "torch.cuda.is_available = lambda: True\n"
-        "from naka_gs_plugin import config\n"
-        "out = {}\n"
-        "for name, spec in config.METHODS.items():\n"
-        "    c = spec.config\n"
-        "    m = c.pipeline.model\n"
-        "    out[name] = [c.max_num_iterations, c.optimizers['means']['scheduler'].max_steps, m.stop_split_at,\n"
-        "                 m.resolution_schedule, c.machine.device_type, c.optimizers['means']['optimizer'].fused]\n"
-        "print(json.dumps(out))\n"
+        "import sys, torch\n"
+        "if sys.argv[1] == 'cuda':\n"
+        "    torch.cuda.is_available = lambda: True\n"
+        "import tyro\n"
+        "from naka_gs_plugin.config import naka_gs_method\n"
+        "tyro.cli(type(naka_gs_method.config), default=naka_gs_method.config, args=['--help'],\n"
+        "         description=naka_gs_method.description)\n"
     )
-    res = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=300)
-    assert res.returncode == 0, res.stderr[-2000:]
-    presets = json.loads(res.stdout.strip().splitlines()[-1])
-    assert presets["naka-gs"] == [7000, 30000, 15000, 3000, "cuda", None]
-    assert presets["naka-gs-fast"] == [3000, 4300, 2150, 1290, "cuda", None]
+    env = dict(os.environ, COLUMNS="200")
+    helps = [
+        subprocess.run([sys.executable, "-c", probe, device], capture_output=True, text=True, timeout=300, env=env)
+        for device in ("cpu", "cuda")
+    ]
+    assert helps[0].stdout and helps[0].stdout == helps[1].stdout, (helps[0].stderr[-2000:], helps[1].stderr[-2000:])
+    text = " ".join(helps[0].stdout.split())
+    assert "cpu gets splatfacto's schedule compressed" in text and "cuda splatfacto's own 30000-step" in text
+    assert "(default: auto)" in text
 
 
 def test_the_optimizers_are_torchs_fused_adam_on_a_cpu():
-    """Every parameter group's Adam is torch's fused one on a CPU where torch has it (2.4 on), else torch's default."""
+    """Every parameter group's Adam is torch's fused one on a CPU where torch has it (2.4 on), else torch's default;
+    on CUDA torch's default."""
     import torch
 
     from naka_gs_plugin import config
 
-    assert config.FUSED_ADAM_ON_CPU is (not config.CUDA and torch.__version__ >= "2.4")
     for method in config.METHODS.values():
-        for name, spec in method.config.optimizers.items():
-            built = spec["optimizer"].setup([torch.nn.Parameter(torch.zeros(4, 3))])
-            assert built.defaults["fused"] is (True if config.FUSED_ADAM_ON_CPU else None), name
+        for device, expected in (("cpu", True if config.FUSED_ADAM else None), ("cuda", None)):
+            for name, spec in _resolved(method, device, cuda=True).optimizers.items():
+                built = spec["optimizer"].setup([torch.nn.Parameter(torch.zeros(4, 3))])
+                assert built.defaults["fused"] is expected, (name, device)
 
 
 @pytest.mark.skipif(not FUSED_CPU, reason="torch < 2.4 has no fused Adam for the CPU")

@@ -13,7 +13,7 @@ import pytest
 import torch
 from nerfstudio.data.scene_box import SceneBox
 
-from naka_gs_plugin.model import rasterize_cpu_fast
+from naka_gs_plugin.model import compile_ahead, rasterize_cpu_fast, rasterize_cpu_kernels, rasterize_cpu_lists
 from naka_gs_plugin.model.projection import pixel_bounds, project_gaussians
 from naka_gs_plugin.model.rasterize import ALPHA_MIN, TILE_SIZE, rasterization
 from naka_gs_plugin.model.rasterize_cpu_fast import rasterize_to_pixels_cpu_fast
@@ -252,7 +252,7 @@ def test_tile_lists_are_in_depth_order_per_tile(monkeypatch):
         per_record.append(tiles)
     tile_start, tile_items, rec_start, rec_slots, vis_start, slot_y = got
     assert (
-        boxes.shape[0] > 4 * rasterize_cpu_fast._BIN_CHUNKS
+        boxes.shape[0] > 4 * rasterize_cpu_lists._BIN_CHUNKS
         and len({t // (tiles_x * tiles_y) for t in sum(per_record, [])}) == 2
     )
     assert tile_start.tolist() == np.cumsum([0] + [len(items) for items in lists]).tolist()
@@ -285,7 +285,7 @@ def test_depth_sort_is_torchs_stable_argsort(dtype):
     cases = [depths, signed, close, rng.uniform(1, 2, 1), np.full(50, 1.5)]
     for keys in (k.astype(dtype) for k in cases):
         expected = torch.argsort(torch.from_numpy(keys), stable=True).numpy()
-        assert np.array_equal(rasterize_cpu_fast._stable_argsort(keys), expected)
+        assert np.array_equal(rasterize_cpu_lists._stable_argsort(keys), expected)
 
 
 @pytest.mark.parametrize("hard", [False, True])
@@ -398,7 +398,7 @@ def test_exp_f32_is_within_two_ulp():
     def exp_all(x):
         out = np.empty_like(x)
         for i in range(x.shape[0]):
-            out[i] = rasterize_cpu_fast._exp_f32(x[i])
+            out[i] = rasterize_cpu_kernels._exp_f32(x[i])
         return out
 
     x = np.linspace(-80.0, 0.0, 1_000_003, dtype=np.float32)
@@ -515,46 +515,46 @@ def no_kernels_yet(monkeypatch):
     """This process as if nothing were compiled nor on disk, with no background compile started (the kernels
     compiled in fact, so that a render that did not wait would finish before a child that sleeps)."""
     rasterize_cpu_fast.warm_up(F32)
-    monkeypatch.setattr(rasterize_cpu_fast, "_READY", {})
-    monkeypatch.setattr(rasterize_cpu_fast, "_BACKGROUND", {})
-    monkeypatch.setattr(rasterize_cpu_fast, "kernels_on_disk", lambda: False)
+    monkeypatch.setattr(compile_ahead, "_READY", {})
+    monkeypatch.setattr(compile_ahead, "_BACKGROUND", {})
+    monkeypatch.setattr(compile_ahead, "kernels_on_disk", lambda: False)
 
 
 def _child(monkeypatch, code):
     import sys
 
-    monkeypatch.setattr(rasterize_cpu_fast, "BACKGROUND_COMMAND", (sys.executable, "-c", code))
+    monkeypatch.setattr(compile_ahead, "BACKGROUND_COMMAND", (sys.executable, "-c", code))
 
 
 def test_first_render_waits_for_the_background_compile(no_kernels_yet, monkeypatch, tmp_path):
     """One child at a time; the first render of float32 starts only once it has finished."""
     done = tmp_path / "done"
     _child(monkeypatch, f"import time, pathlib; time.sleep(1.0); pathlib.Path({str(done)!r}).touch()")
-    assert rasterize_cpu_fast.compile_in_background()
-    assert not rasterize_cpu_fast.compile_in_background()  # the first is still running
+    assert compile_ahead.compile_in_background()
+    assert not compile_ahead.compile_in_background()  # the first is still running
     rasterize_cpu_fast.warm_up(F32)
     assert done.exists()
-    assert not rasterize_cpu_fast.compile_in_background()  # float32 is ready in this process now
+    assert not compile_ahead.compile_in_background()  # float32 is ready in this process now
 
 
 def test_a_failed_background_compile_is_said_and_the_render_compiles(no_kernels_yet, monkeypatch):
     logged = []
-    monkeypatch.setattr(rasterize_cpu_fast.CONSOLE, "log", lambda message, **_: logged.append(message))
+    monkeypatch.setattr(compile_ahead.CONSOLE, "log", lambda message, **_: logged.append(message))
     _child(monkeypatch, "raise SystemExit(3)")
-    assert rasterize_cpu_fast.compile_in_background()
+    assert compile_ahead.compile_in_background()
     assert rasterize_cpu_fast.warm_up(F32) > 0
     assert any(m.endswith("background compile failed (exit code 3); compiling here") for m in logged), logged
-    assert F32 in rasterize_cpu_fast._READY
+    assert F32 in compile_ahead._READY
 
 
 def test_no_background_compile_when_the_training_kernels_are_on_disk(monkeypatch):
     """After :func:`warm_training_kernels` (what the child runs) every training kernel is in numba's disk
     cache, and a new process would start no child."""
     rasterize_cpu_fast.warm_training_kernels()
-    assert rasterize_cpu_fast.kernels_on_disk()
-    monkeypatch.setattr(rasterize_cpu_fast, "_READY", {})
-    monkeypatch.setattr(rasterize_cpu_fast, "_BACKGROUND", {})
-    assert not rasterize_cpu_fast.compile_in_background()
+    assert compile_ahead.kernels_on_disk()
+    monkeypatch.setattr(compile_ahead, "_READY", {})
+    monkeypatch.setattr(compile_ahead, "_BACKGROUND", {})
+    assert not compile_ahead.compile_in_background()
 
 
 def test_the_background_child_imports_this_checkout_whatever_its_working_directory(tmp_path):
@@ -567,7 +567,7 @@ def test_the_background_child_imports_this_checkout_whatever_its_working_directo
     for folder in (shadow.parent, shadow):
         (folder / "__init__.py").write_text("")
     (shadow / "rasterize_cpu_fast.py").write_text("")
-    code = rasterize_cpu_fast.child_code("print(m.__file__)")
+    code = compile_ahead.child_code("print(m.__file__)")
     out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, check=True)
     assert out.stdout.strip() == rasterize_cpu_fast.__file__
 
@@ -577,21 +577,21 @@ def test_the_block_beside_the_child_runs_on_one_thread_fewer(no_kernels_yet, mon
     reclaim_core once the child has exited; without a child the block keeps its threads."""
     import naka_gs_plugin.cpu as cpu
 
-    for module in (rasterize_cpu_fast, cpu):
+    for module in (compile_ahead, cpu):
         monkeypatch.setattr(module, "usable_cpus", lambda: (2, "test"))
     _child(monkeypatch, "import time; time.sleep(0.5)")
     threads = torch.get_num_threads()
     torch.set_num_threads(2)
     try:
-        with rasterize_cpu_fast.compiling_in_background() as started:
+        with compile_ahead.compiling_in_background() as started:
             assert started
             assert torch.get_num_threads() == 1
-            rasterize_cpu_fast._BACKGROUND[F32].wait()
+            compile_ahead._BACKGROUND[F32].wait()
             cpu.reclaim_core()
             assert torch.get_num_threads() == 2
         assert torch.get_num_threads() == 2
         rasterize_cpu_fast.warm_up(F32)  # waits for the child
-        with rasterize_cpu_fast.compiling_in_background() as started:
+        with compile_ahead.compiling_in_background() as started:
             assert not started  # float32 is ready in this process now
             assert torch.get_num_threads() == 2
     finally:
@@ -600,5 +600,5 @@ def test_the_block_beside_the_child_runs_on_one_thread_fewer(no_kernels_yet, mon
 
 def test_no_background_compile_on_a_single_usable_cpu(no_kernels_yet, monkeypatch):
     """On one CPU the child would only take turns with the enhancement."""
-    monkeypatch.setattr(rasterize_cpu_fast, "usable_cpus", lambda: (1, "CPU affinity"))
-    assert not rasterize_cpu_fast.compile_in_background()
+    monkeypatch.setattr(compile_ahead, "usable_cpus", lambda: (1, "CPU affinity"))
+    assert not compile_ahead.compile_in_background()

@@ -1,5 +1,6 @@
 """nerfstudio checkpoints hold numpy scalars (learning rates); ``import naka_gs_plugin`` lets torch's
-``weights_only`` loader accept them under the name numpy 1 writes and the one numpy 2 writes."""
+``weights_only`` loader accept them under the name numpy 1 writes and the one numpy 2 writes, once a naka-gs command
+or run has turned the hooks on."""
 
 import io
 import pickle
@@ -9,7 +10,9 @@ import numpy as np
 import pytest
 import torch
 
-import naka_gs_plugin  # noqa: F401  (registers the safe globals)
+from naka_gs_plugin.run import nerfstudio_hooks
+
+nerfstudio_hooks.activate()  # as a naka-gs command or run does: registers the safe globals
 
 
 def _checkpoint_bytes(module: str) -> bytes:

@@ -21,11 +21,13 @@ import numpy as np
 from jaxtyping import Float
 from PIL import Image, ImageFile
 
+from naka_gs_plugin.errors import UserError
+
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 """Image file endings the plugin reads (compare with ``Path.suffix.lower()``)."""
 
 
-class ImageReadError(ValueError):
+class ImageReadError(UserError, ValueError):
     """An image that cannot be used; the message names the file and the fix."""
 
 

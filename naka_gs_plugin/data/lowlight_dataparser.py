@@ -46,6 +46,7 @@ from torch import Tensor
 
 from naka_gs_plugin.data.cache import default_cache_dir, read_sealed, seal
 from naka_gs_plugin.data.images import IMAGE_SUFFIXES, ImageReadError, read_raw, to_rgb01, write_image
+from naka_gs_plugin.errors import UserError
 
 MAX_AUTO_RESOLUTION = 1600
 """Auto downscale picks the smallest power of two bringing the longer side to at most this (as nerfstudio-data)."""
@@ -73,7 +74,7 @@ MIN_IMAGE_SIDE = 8
 needs 2 pixels a side there (a 1 px view breaks the loss's tensors)."""
 
 
-class LowLightDataError(ValueError):
+class LowLightDataError(UserError, ValueError):
     """A scene file is malformed; the message names the file and the fix, on one line."""
 
 

@@ -24,6 +24,7 @@ import numpy as np
 from jaxtyping import Float
 
 from naka_gs_plugin.data.images import IMAGE_SUFFIXES, read_rgb
+from naka_gs_plugin.errors import UserError
 
 MIN_PAIRS = 3
 MAX_SHIFT = 4.0
@@ -38,7 +39,7 @@ ALIGN_LONG_SIDE = 512
 """The alignment runs on copies area-downscaled to this longer side (blurred noise; ECC in well under a second)."""
 
 
-class PairsError(ValueError):
+class PairsError(UserError, ValueError):
     """Calibration pairs that cannot be used; the message names the pair (or folder) and the fix."""
 
 

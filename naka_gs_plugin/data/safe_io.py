@@ -3,14 +3,15 @@
 * Every file write goes to a unique temporary name in the target's folder (pid + random token, so
   concurrent runs never share one), is checked, and is published with :func:`os.replace`: a
   reader sees the old file or the complete new one, never a partial one.
-* Output folders are built in a hidden sibling staging folder and published by rename. Each
-  folder we publish holds :data:`MARKER`, a json listing every file we wrote; a folder is only
-  ever replaced when that marker exists and the folder holds nothing else.
-* Output folders are refused when they equal, contain or lie inside an input.
+* Every command's output (a folder, or a file) goes through :func:`staged_output`: refused when it equals,
+  contains or lies inside an input, or would replace something we did not write; built in a hidden ``.partial``
+  sibling folder; published by rename; the partial output removed on an exception, Ctrl-C or SIGTERM. Each
+  folder we publish holds :data:`MARKER`, a json listing every file we wrote; a folder is only ever replaced when
+  that marker exists and the folder holds nothing else.
 * A cache directory that cannot be written falls back to a private temporary one, with one warning;
   it is removed when the process exits.
-* Ctrl-C or SIGTERM while a staged folder is built removes it, says so in one line and exits 130 / 143
-  (:class:`RemovedOnStop`), even in the middle of a long native call.
+* Ctrl-C or SIGTERM while a staged output is built removes it, says so in one line (``naka-gs: Ctrl-C: stopped;
+  ...`` on stderr) and exits 130 / 143 (:class:`RemovedOnStop`), even in the middle of a long native call.
 """
 
 from __future__ import annotations
@@ -27,11 +28,11 @@ import tempfile
 import threading
 import time
 from pathlib import Path
-from typing import Callable, Dict, Iterable, Iterator, List, Optional
+from typing import Callable, Dict, Iterable, Iterator, List, NamedTuple, Optional
 
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from naka_gs_plugin.errors import signal_exit_status
+from naka_gs_plugin.errors import UserError, signal_exit_status
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
@@ -39,7 +40,7 @@ MARKER = ".naka-gs-output"
 """File naming the tool that wrote a folder and every file it wrote (paths relative to the folder)."""
 
 
-class UnsafeOutputError(ValueError):
+class UnsafeOutputError(UserError, ValueError):
     """An output location that would overwrite or delete something we did not write; one line."""
 
 
@@ -154,12 +155,14 @@ def check_new_files(folder: Path, names: Iterable[str], option: str, fix: str) -
             )
 
 
-def staging_dir(out: Path) -> Path:
-    """A new, empty hidden sibling of ``out`` to build it in (see :func:`publish_dir`)."""
-    out.parent.mkdir(parents=True, exist_ok=True)
-    stage = unique_name(out, "partial")
-    stage.mkdir()
-    return stage
+def check_parent_folder(out: Path, option: str) -> None:
+    """Refuse ``out`` when the nearest existing path above it is not a folder (``notes.txt/out``): nothing can be
+    made there."""
+    for parent in out.parents:
+        if parent.exists() or parent.is_symlink():
+            if not parent.is_dir():
+                raise UnsafeOutputError(f"{option} {out}: {parent} is not a folder -- choose another {option}")
+            return
 
 
 def write_marker(folder: Path, tool: str, extra: Optional[Dict[str, object]] = None) -> None:
@@ -191,8 +194,9 @@ def publish_dir(stage: Path, out: Path, tool: str, option: str, overwrite: Optio
 
 
 class RemovedOnStop:
-    """While ``stage`` (a :func:`staging_dir` of ``out``) is built: Ctrl-C or SIGTERM removes it, prints one line
-    ``<tool>: <signal>: stopped; ...`` and exits 130 / 143 at once; ``out`` is left as it was.
+    """While ``stage`` (the staging folder of ``out``, :func:`staged_output`) is built: Ctrl-C or SIGTERM removes it,
+    prints one line ``naka-gs: <signal>: stopped; ...`` on stderr and exits 130 / 143 at once; ``out`` is left as it
+    was.
 
     The work may sit in one native call for minutes (pycolmap's matching), and Python runs signal handlers only in
     the main thread, between bytecodes: a handler would run only once that call returned. So the signal is read from
@@ -202,8 +206,8 @@ class RemovedOnStop:
     the main thread (where no handler can be set) and for a signal ignored by the caller (``nohup``) it does nothing.
     """
 
-    def __init__(self, stage: Path, out: Path, tool: str) -> None:
-        self.stage, self.out, self.tool = stage, out, tool
+    def __init__(self, stage: Path, out: Path) -> None:
+        self.stage, self.out = stage, out
         self._existed = out.exists()
         self._lock = threading.Lock()
         self._publishing = False
@@ -278,16 +282,80 @@ class RemovedOnStop:
                 what = f"its unfinished output was removed and {self.out} {kept}; run it again to make it"
             else:
                 what = f"{self.out} was complete already"
-            line = f"{self.tool}: {name}: stopped; {what}\n"
+            line = f"naka-gs: {name}: stopped; {what}\n"
             try:
                 # Not through the console: the main thread may be waiting in _hold holding its lock (a signal handler
                 # runs between any two bytecodes). A progress bar hides the cursor on a terminal: show it again.
-                sys.stdout.flush()
-                if sys.stdout.isatty():
-                    line = "\x1b[?25h\n" + line
-                os.write(sys.stdout.fileno(), line.encode())
+                with contextlib.suppress(Exception):
+                    sys.stdout.flush()
+                    if sys.stdout.isatty():
+                        os.write(sys.stdout.fileno(), b"\x1b[?25h\n")
+                os.write(sys.stderr.fileno(), line.encode())
             finally:
                 os._exit(signal_exit_status(signum))
+
+
+class OutputFile(NamedTuple):
+    """An output that is one file, for :func:`staged_output`: what it is in words (``"a camera profile"``), and whether
+    an existing file at its path is one (only then is it replaced)."""
+
+    kind: str
+    is_one: Callable[[Path], bool]
+
+
+def _check_file_replaceable(out: Path, option: str, file: OutputFile) -> None:
+    if (out.exists() or out.is_symlink()) and not (out.is_file() and file.is_one(out)):
+        raise UnsafeOutputError(
+            f"{option} {out} exists and is not {file.kind} -- choose another path (it is not replaced)"
+        )
+
+
+@contextlib.contextmanager
+def staged_output(
+    out: Path,
+    *,
+    tool: str,
+    what: str = "--out",
+    inputs: Iterable[Path] = (),
+    overwrite: Optional[bool] = None,
+    file: Optional[OutputFile] = None,
+) -> Iterator[Path]:
+    """Build a command's output ``out`` (its option ``what``) in a staging folder and publish it whole, or not at all.
+
+    First ``out`` is checked: not equal to, inside or containing one of ``inputs`` (files or folders), not under a
+    file, and replaceable: absent, an empty folder or a folder ``tool``-like commands wrote holding nothing else
+    (:func:`check_replaceable` with ``overwrite``: None for commands without ``--overwrite``); with ``file``, absent or
+    a file of that kind. Then it yields a new hidden sibling folder ``.<name>.partial-<pid>-<random>`` to write into:
+    the folder ``out`` becomes, or with ``file`` one holding ``out.name`` and any files to publish beside it. When the
+    body returns, the check is repeated and the output is published by rename (:func:`publish_dir`, which adds the
+    :data:`MARKER`; files one by one, ``out`` last). An exception in the body, Ctrl-C or SIGTERM
+    (:class:`RemovedOnStop`: one line, exit 130 / 143) removes the stage and leaves ``out`` as it was.
+    """
+    check_not_input(out, inputs, what)
+    check_parent_folder(out, what)
+    if file is None:
+        check_replaceable(out, what, overwrite)
+    else:
+        _check_file_replaceable(out, what, file)
+    target = out.resolve()
+    target.parent.mkdir(parents=True, exist_ok=True)
+    stage = unique_name(target, "partial")
+    try:
+        stage.mkdir()
+    except OSError as err:  # the stage's hidden name means nothing to the user; the folder it is made in does
+        raise type(err)(err.errno, err.strerror, str(target.parent)) from None
+    try:
+        with RemovedOnStop(stage, target) as stop:
+            yield stage
+            with stop.publishing():
+                if file is None:
+                    publish_dir(stage, target, tool, what, overwrite)
+                else:
+                    _check_file_replaceable(out, what, file)
+                    for name in sorted((p.name for p in stage.iterdir()), key=lambda name: name == target.name):
+                        os.replace(stage / name, target.parent / name)  # out last: the file a later run reads
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)  # our own staging folder; gone already once published
 
 
 _fallback: Dict[Path, Path] = {}

@@ -20,13 +20,14 @@ import torch
 from torch import Tensor
 
 from naka_gs_plugin.enhance.correction_net import ChromaGuided, ChromaGuidedConfig
+from naka_gs_plugin.errors import UserError
 
 CHECKPOINT_FORMAT = "naka-gs-correction"
 DEFAULT_WEIGHTS = Path(str(files("naka_gs_plugin.enhance") / "weights" / "chroma_guided_default.pt"))
 """The shipped weights (``EnhanceConfig.correction = "default"``)."""
 
 
-class CorrectionWeightsError(ValueError):
+class CorrectionWeightsError(UserError, ValueError):
     """A correction checkpoint that cannot be loaded (not a torch file, not this network's weights): a problem
     the user fixes by passing another file. The message is one line naming the file."""
 

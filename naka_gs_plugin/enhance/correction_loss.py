@@ -21,6 +21,8 @@ import torch.nn.functional as F
 from jaxtyping import Float
 from torch import Tensor, nn
 
+from naka_gs_plugin.errors import UserError
+
 LUMA = (0.299, 0.587, 0.114)
 """BT.601 luma weights (the reference's gray image for both masks)."""
 
@@ -98,6 +100,10 @@ def total_variation(x: Tensor) -> Tensor:
     return tv
 
 
+class VGGWeightsError(UserError, ValueError):
+    """``--vgg-weights`` names a file that is not torchvision's VGG19 state dict; one line."""
+
+
 class VGGFeatures(nn.Module):
     """Frozen torchvision VGG19 up to relu4_4, on ImageNet-normalised input; returns 4 feature maps."""
 
@@ -109,13 +115,13 @@ class VGGFeatures(nn.Module):
         try:
             state = torch.load(weights, map_location="cpu", weights_only=True)
         except (OSError, RuntimeError) as err:
-            raise ValueError(
+            raise VGGWeightsError(
                 f"cannot read VGG19 weights {weights}: {err}; pass torchvision's vgg19-dcbb9e9d.pth"
             ) from err
         try:
             vgg.load_state_dict(state)
         except RuntimeError as err:
-            raise ValueError(f"{weights} is not a torchvision VGG19 state dict; pass vgg19-dcbb9e9d.pth") from err
+            raise VGGWeightsError(f"{weights} is not a torchvision VGG19 state dict; pass vgg19-dcbb9e9d.pth") from err
         self.features = vgg.features[: max(VGG_LAYERS) + 1].eval()
         for p in self.features.parameters():
             p.requires_grad_(False)

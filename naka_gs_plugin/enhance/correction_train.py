@@ -47,12 +47,17 @@ from naka_gs_plugin.enhance.correction import MODES, CorrectionRunner
 from naka_gs_plugin.enhance.correction_loss import CorrectionLoss
 from naka_gs_plugin.enhance.correction_net import ChromaGuided, ChromaGuidedConfig, apply_maps
 from naka_gs_plugin.enhance.naka import naka_enhance
+from naka_gs_plugin.errors import UserError
 from naka_gs_plugin.metrics import psnr
 from naka_gs_plugin.progress import StageProgress
 from naka_gs_plugin.shipped import config_file
 
 CONSOLE = Console(width=120)
 """The trainer's console (rich's, as nerfstudio's: this module imports without nerfstudio)."""
+
+
+class CorrectionTrainingError(UserError, ValueError):
+    """A training option, recipe or data source the correction trainer cannot use; one line naming it."""
 
 
 @dataclass
@@ -215,7 +220,7 @@ class PairSet:
             for p in self.pairs:
                 low, high = read_stored(p.low), read_stored(p.high)
                 if low.shape != high.shape:
-                    raise ValueError(
+                    raise CorrectionTrainingError(
                         f"{p.low} is {low.shape[1]}x{low.shape[0]} but {p.high} is {high.shape[1]}x{high.shape[0]}"
                     )
                 self.low.append(low)
@@ -316,7 +321,7 @@ def config_from_yaml(path: Path) -> TrainConfig:
     types = {f.name: f.type for f in fields(TrainConfig)}
     unknown = sorted(set(data) - set(types))
     if unknown:
-        raise ValueError(f"{path}: unknown keys {unknown}; use TrainConfig field names (see --help)")
+        raise CorrectionTrainingError(f"{path}: unknown keys {unknown}; use TrainConfig field names (see --help)")
     values = {}
     for k, v in data.items():
         t = str(types[k])
@@ -378,7 +383,9 @@ def load_sources(config: TrainConfig) -> Tuple[PairSet, PairSet, List[Tuple[str,
     scenes = [Path(s).name for s in config.lom + config.sim]
     unknown = sorted(set(config.hold_out) - set(scenes))
     if unknown:
-        raise ValueError(f"--hold-out {' '.join(unknown)} names no --lom/--sim scene; choose among {scenes}")
+        raise CorrectionTrainingError(
+            f"--hold-out {' '.join(unknown)} names no --lom/--sim scene; choose among {scenes}"
+        )
     for root in config.lol:
         train += lol_pairs(root, "train")
         val += lol_pairs(root, "eval")
@@ -390,9 +397,9 @@ def load_sources(config: TrainConfig) -> Tuple[PairSet, PairSet, List[Tuple[str,
         if Path(scene).name not in config.hold_out:
             train += sim_pairs(scene)
     if not train:
-        raise ValueError("no training pairs: pass at least one of --lol, --lom, --sim")
+        raise CorrectionTrainingError("no training pairs: pass at least one of --lol, --lom, --sim")
     if not val:
-        raise ValueError("no validation pairs: --lol (eval/) or --lom (transforms_test.json) is needed")
+        raise CorrectionTrainingError("no validation pairs: --lol (eval/) or --lom (transforms_test.json) is needed")
     train_set = PairSet(train, "Reading training pairs")
     dropped = train_set.drop_misaligned(config.min_edge_correlation)
     return train_set, PairSet(val, "Reading validation pairs"), dropped
@@ -405,11 +412,13 @@ def training_device(name: str) -> torch.device:
     try:
         device = torch.device(name)
     except RuntimeError:
-        raise ValueError(f"--device {name!r} is not a device: use auto, cpu, cuda or cuda:N") from None
+        raise CorrectionTrainingError(f"--device {name!r} is not a device: use auto, cpu, cuda or cuda:N") from None
     if device.type not in ("cpu", "cuda"):
-        raise ValueError(f"--device {name!r}: the correction trainer runs on cpu or cuda (or auto)")
+        raise CorrectionTrainingError(f"--device {name!r}: the correction trainer runs on cpu or cuda (or auto)")
     if device.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"--device {name}: CUDA is not available on this machine: use --device cpu (or auto)")
+        raise CorrectionTrainingError(
+            f"--device {name}: CUDA is not available on this machine: use --device cpu (or auto)"
+        )
     return device
 
 
@@ -422,27 +431,27 @@ def read_resume(path: Path, model: ChromaGuidedConfig) -> Tuple[dict, ChromaGuid
     ckpt = torch.load(path, map_location="cpu", weights_only=True)
     missing = [k for k in ("optimizer", "scheduler", "epoch", "history", "best_psnr") if k not in ckpt]
     if missing:
-        raise ValueError(f"{path} lacks {missing}: resume needs a latest.pt written by this trainer")
+        raise CorrectionTrainingError(f"{path} lacks {missing}: resume needs a latest.pt written by this trainer")
     if saved.config != model:
-        raise ValueError(f"{path} holds a {saved.config} network, not the configured {model}")
+        raise CorrectionTrainingError(f"{path} holds a {saved.config} network, not the configured {model}")
     return ckpt, saved
 
 
 def train(config: TrainConfig) -> Dict[str, list]:
     """Run the training; returns the history (per epoch: train loss terms, validation PSNR, seconds)."""
     if config.val_mode not in VAL_MODES:
-        raise ValueError(f"unknown --val-mode {config.val_mode!r}; choose one of {VAL_MODES}")
+        raise CorrectionTrainingError(f"unknown --val-mode {config.val_mode!r}; choose one of {VAL_MODES}")
     device = training_device(config.device)
     if device.type == "cuda" and config.val_mode not in ("exact", "half"):
-        raise ValueError(f"--val-mode {config.val_mode} runs on the CPU only; on CUDA use exact or half")
+        raise CorrectionTrainingError(f"--val-mode {config.val_mode} runs on the CPU only; on CUDA use exact or half")
     resumed = read_resume(config.resume, config.model) if config.resume is not None else None  # before any work
     if config.threads:
         torch.set_num_threads(config.threads)
     fit_threads()
     torch.manual_seed(config.seed)
-    out = config.output_dir
-    out.mkdir(parents=True, exist_ok=True)
     train_set, val_set, dropped = load_sources(config)
+    out = config.output_dir
+    out.mkdir(parents=True, exist_ok=True)  # once the sources are read: a bad source leaves no folder behind
     counts = {s: sum(p.source == s for p in train_set.pairs) for s in ("lol", "lom", "sim")}
     _log(
         f"correction training on {device}: {len(train_set)} pairs {counts}, {len(val_set)} validation pairs; "
@@ -457,11 +466,13 @@ def train(config: TrainConfig) -> Dict[str, list]:
         dtype=torch.float64,
     )
     if (weights <= 0).all():
-        raise ValueError("all source weights are zero: set --lol-weight/--lom-weight/--sim-weight > 0")
+        raise CorrectionTrainingError("all source weights are zero: set --lol-weight/--lom-weight/--sim-weight > 0")
     per_epoch = config.images_per_epoch or len(train_set)
     iters = per_epoch // config.batch_size
     if iters < 1:
-        raise ValueError(f"images per epoch ({per_epoch}) < batch size ({config.batch_size}): no iteration")
+        raise CorrectionTrainingError(
+            f"images per epoch ({per_epoch}) < batch size ({config.batch_size}): no iteration"
+        )
 
     net = ChromaGuided(config.model)
     if config.neutral_init:
@@ -583,7 +594,9 @@ def export_weights(checkpoint: Path, dest: Path) -> Path:
     ckpt = torch.load(checkpoint, map_location="cpu", weights_only=True)
     missing = [k for k in ("epoch", "history", "train_config") if k not in ckpt]
     if missing:
-        raise ValueError(f"{checkpoint} lacks {missing}: export needs a best.pt/latest.pt written by this trainer")
+        raise CorrectionTrainingError(
+            f"{checkpoint} lacks {missing}: export needs a best.pt/latest.pt written by this trainer"
+        )
     provenance = {
         "epoch": ckpt["epoch"],
         "best_psnr": ckpt["best_psnr"],

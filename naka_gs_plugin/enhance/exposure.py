@@ -9,7 +9,7 @@ appearance). Scenes already at or above the target are left alone: a bright nigh
 The curve is what a longer exposure does: every linear value times one factor ``k >= 1``, with a soft
 shoulder above :data:`KNEE` so highlights roll off to white instead of clipping; contrast and the blacks
 stay where the capture has them (a power curve on sRGB values, which flattens the views, lost on the LOM
-protocol: docs/real-scenes.md, Levers).
+protocol: records/2026-11-27-levers.md).
 
 Metering in linear light is what tells a dark-toned scene from an under-exposed one: a few bright areas
 (sky through foliage) carry a large share of the light, so a scene of dark leaves under a bright sky

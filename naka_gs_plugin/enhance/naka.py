@@ -3,7 +3,7 @@
 Per pixel and per channel the response is ``R = I^n / (I^n + sigma^n)`` (sigma 0.05, n 1 in the
 reference), followed by a linear min-max stretch to [0, 1] whose minimum and maximum are taken over one
 image (all pixels and channels jointly), as in the reference (pooling them over the scene's views was no
-better on the LOM protocol: docs/real-scenes.md, Levers).
+better on the LOM protocol: records/2026-11-27-levers.md).
 
 Images are sRGB-encoded values in [0, 1], channel-last ``[..., H, W, 3]`` (nerfstudio's layout).
 Everything here is batched, differentiable and finite everywhere, including black, constant and

@@ -51,6 +51,7 @@ from naka_gs_plugin.enhance.stages import (
     ViewStage,
     to_float01,
 )
+from naka_gs_plugin.errors import UserError
 from naka_gs_plugin.progress import StageProgress
 
 CACHE_VERSION = 1
@@ -66,7 +67,7 @@ RETIRED: Dict[str, Tuple[Any, str]] = {
     "cache_dir": (None, "every cache lives in $NAKA_GS_CACHE: set it to keep using that folder"),
 }
 """Options removed from :class:`EnhanceConfig`: the value that behaves as today, and what runs instead
-(each measurement: docs/real-scenes.md, Levers)."""
+(each measurement: records/2026-11-27-levers.md)."""
 LEGACY_DEFAULTS = {
     "chroma": "network",
     "exposure_metering": "mean",
@@ -79,7 +80,7 @@ a retired one is checked against what runs now."""
 CORRECTION_OPTION = "--pipeline.datamanager.enhance.correction"
 
 
-class EnhanceOptionError(ValueError):
+class EnhanceOptionError(UserError, ValueError):
     """An :class:`EnhanceConfig` value out of its range (``sigma``, ``n``, ``exposure``, ``chroma-blur``): one line
     naming the ``--pipeline.datamanager.enhance.*`` option, the value and the default."""
 

@@ -25,6 +25,7 @@ from jaxtyping import Float
 from torch import Tensor
 
 from naka_gs_plugin.enhance.exposure import linear_to_srgb, srgb_to_linear
+from naka_gs_plugin.errors import UserError
 
 PROFILE_FORMAT = "naka-gs-camera-profile"
 PROFILE_VERSION = 1
@@ -39,7 +40,7 @@ HUBER_DELTA = 0.1
 """Residuals beyond this (sRGB, 25 codes) count linearly in the fit."""
 
 
-class CameraProfileError(ValueError):
+class CameraProfileError(UserError, ValueError):
     """A profile file that cannot be used (missing, not a profile, damaged); the message names it and the fix."""
 
 

@@ -5,7 +5,8 @@ is the dark capture's times one gain wherever the capture recorded the scene: ab
 tone curve's shoulder. The enhancement does not keep that ratio: the Naka-Rushton response is concave and the
 correction network, trained on LOL and LOM targets, lifts black, so the capture's shadows get a larger gain
 than its mid-tones: lifted, grey-green shadows and flat contrast, worst on captures far darker than the
-network's training pairs (RealX3D), where most of the view is shadow (docs/real-scenes.md, capture tone).
+network's training pairs (RealX3D), where most of the view is shadow
+(records/2026-11-28-bluehawaii-colour-diagnostics.md).
 
 Here both brightnesses (the mean of the channels in linear light) are low-pass filtered, as a dark capture's
 brightness is noise at the pixel scale, and the view's gain is the median of their ratio over the pixels the
@@ -18,7 +19,7 @@ pixel to the filtered capture instead would replace the enhanced detail by the c
 The ceiling holds only below the capture's floor (:data:`FLOOR_CODES`), where the capture recorded no signal and
 every lift is the enhancement's invention; where the capture measured the scene, the enhancement's tone is a
 tone curve like a normal photo's (LOM's photos are not one gain over their captures), and a ceiling there costs
-bright scenes their mid-tones (docs/real-scenes.md, capture tone).
+bright scenes their mid-tones (records/2026-11-28-bluehawaii-colour-diagnostics.md).
 
 Images are sRGB-encoded in [0, 1], channel-last ``[H, W, 3]``; the ratio and the scaling are in linear RGB.
 """

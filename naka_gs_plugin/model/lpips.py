@@ -22,6 +22,8 @@ import torchvision
 from jaxtyping import Float
 from torch import Tensor, nn
 
+from naka_gs_plugin.errors import UserError
+
 SHIPPED = Path(str(files("naka_gs_plugin.model") / "weights" / "lpips_alex.pt"))
 """AlexNet's five convolutions + LPIPS v0.1's linear layers, float32, ``torch.load(weights_only=True)``."""
 CHANNELS = (64, 192, 384, 256, 256)
@@ -32,7 +34,7 @@ CONVS = (0, 3, 6, 8, 10)
 """Indices of the convolutions in ``alexnet().features``."""
 
 
-class LPIPSWeightsError(ValueError):
+class LPIPSWeightsError(UserError, ValueError):
     """An LPIPS weights file (``--pipeline.model.lpips-weights``) that is missing, unreadable or not AlexNet's
     weights: one line naming the file and the fix."""
 

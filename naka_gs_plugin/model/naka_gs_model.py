@@ -34,7 +34,6 @@ import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Literal, Optional, Type, Union
-from unittest import mock
 
 import torch
 from jaxtyping import Float
@@ -47,18 +46,21 @@ from torch import Tensor
 from torch.nn import Parameter
 from torchmetrics.functional.image import peak_signal_noise_ratio
 
+from naka_gs_plugin.errors import UserError
 from naka_gs_plugin.model.appearance import ViewAppearance
 from naka_gs_plugin.model.composite import composite
 from naka_gs_plugin.model.lpips import LazyLPIPS, LPIPSWeightsError, load_lpips
 from naka_gs_plugin.model.projection import MAX_SH_DEGREE
+from naka_gs_plugin.model.schedule import SPLATFACTO_SCHEDULE, schedule_for_device
 from naka_gs_plugin.model.ssim import SSIMLoss, squared_error_sum
+from naka_gs_plugin.run.nerfstudio_hooks import splatfacto_lpips_replaced
 
 
-class NonFiniteTrainingError(RuntimeError):
+class NonFiniteTrainingError(UserError, RuntimeError):
     """Training produced NaN/Inf; raised before the bad state can be checkpointed."""
 
 
-class RasterizerOptionError(ValueError):
+class RasterizerOptionError(UserError, ValueError):
     """A ``--pipeline.model.rasterizer`` (or ``sh-degree``) this machine's tensors or our rasterizers cannot run:
     one line naming the option and what to pass instead."""
 
@@ -78,6 +80,28 @@ class NakaGSModelConfig(SplatfactoModelConfig):
     """``affine``: a per-channel gain and offset per training view, learned in training and averaging the
     identity over the views (the views are enhanced one by one, so their brightness differs); eval and
     novel views render the views' average appearance. ``none``: one appearance for all views."""
+
+    # Splatfacto's schedule fields, which may be left to the device the run trains on (None; the naka-gs preset
+    # does so): model/schedule.py.
+    warmup_length: Optional[int] = SPLATFACTO_SCHEDULE["warmup_length"]
+    """Steps before densification starts; None: by device (CPU 300, CUDA splatfacto's 500)."""
+    stop_split_at: Optional[int] = SPLATFACTO_SCHEDULE["stop_split_at"]
+    """Step at which densification stops; None: by device (CPU 5000, CUDA splatfacto's 15000)."""
+    stop_screen_size_at: Optional[int] = SPLATFACTO_SCHEDULE["stop_screen_size_at"]
+    """Step at which screen-size splitting stops; None: by device (CPU 3300, CUDA splatfacto's 4000)."""
+    reset_alpha_every: Optional[int] = SPLATFACTO_SCHEDULE["reset_alpha_every"]
+    """Refinements between opacity resets; None: by device (CPU 10, CUDA splatfacto's 30)."""
+    sh_degree_interval: Optional[int] = SPLATFACTO_SCHEDULE["sh_degree_interval"]
+    """Steps between SH degree increases; None: by device (CPU 500, CUDA splatfacto's 1000)."""
+    resolution_schedule: Optional[int] = SPLATFACTO_SCHEDULE["resolution_schedule"]
+    """Steps per training-image downscale level; None: by device (CPU 3250, CUDA splatfacto's 3000)."""
+
+    def resolve_schedule(self, device_type: str) -> None:
+        """Set each schedule field left to the device (None) to its value for ``device_type``
+        (:func:`~naka_gs_plugin.model.schedule.schedule_for_device`); the others are the user's."""
+        for key, value in schedule_for_device(device_type).items():
+            if getattr(self, key) is None:
+                setattr(self, key, value)
 
     def __setstate__(self, state: dict) -> None:
         """Runs saved before ``appearance`` existed have no such parameters in their checkpoints."""
@@ -149,6 +173,8 @@ class NakaGSModel(SplatfactoModel):
     config: NakaGSModelConfig
 
     def populate_modules(self) -> None:
+        device = self.kwargs.get("device")
+        self.config.resolve_schedule(torch.device(device).type if device is not None else "cpu")
         seed_rgb = None
         if self.seed_points is not None and not self.config.random_init and self.seed_points[1].shape[0] > 0:
             # Hide the colours from splatfacto (its colour branch calls .cuda()); set them below.
@@ -160,10 +186,7 @@ class NakaGSModel(SplatfactoModel):
             except LPIPSWeightsError as err:
                 raise LPIPSWeightsError(f"--pipeline.model.lpips-weights {err}") from None
         # Splatfacto imports LPIPS inside populate_modules; swap in ours (offline weights, lazy) there.
-        with mock.patch(
-            "torchmetrics.image.lpip.LearnedPerceptualImagePatchSimilarity",
-            lambda **_: LazyLPIPS(self.config.lpips_weights),
-        ):
+        with splatfacto_lpips_replaced(lambda **_: LazyLPIPS(self.config.lpips_weights)):
             super().populate_modules()
         # Splatfacto's SSIM module, with compiled kernels for CPU images (the same loss and metric).
         self.ssim = SSIMLoss(data_range=1.0, size_average=True, channel=3)

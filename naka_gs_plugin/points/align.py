@@ -13,11 +13,13 @@ from typing import Callable, Dict, List, Literal, Optional, Sequence, Tuple
 import numpy as np
 from jaxtyping import Float
 
+from naka_gs_plugin.errors import UserError
+
 _SUFFIX = re.compile(r"(_enhanced|_image|_img)$", re.IGNORECASE)
 _LAST_INT = re.compile(r"(\d+)(?!.*\d)")
 
 
-class AlignmentError(ValueError):
+class AlignmentError(UserError, ValueError):
     """Correspondences cannot determine the requested transform."""
 
 

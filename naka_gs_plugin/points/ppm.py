@@ -16,6 +16,8 @@ import torch
 from jaxtyping import Float, UInt8
 from scipy.spatial import cKDTree
 
+from naka_gs_plugin.errors import UserError
+
 _KEY_LIMIT = float(2**62)
 
 # The PPM parameters' defaults (the authors'), also those of ``--pipeline.init.*`` and ``naka-gs-ppm``.
@@ -33,6 +35,10 @@ SEED = 42
 """Seed of the pruning draws."""
 
 
+class PPMOptionError(UserError, ValueError):
+    """A PPM setting it cannot run with (a voxel size of 0 or one too small for the cloud's extent); one line."""
+
+
 def _group_order(xyz: torch.Tensor, voxel: float) -> Tuple[np.ndarray, np.ndarray]:
     """Permutation sorting points by voxel key ``floor(xyz / voxel)`` (x, y, z lexicographic), and group sizes.
 
@@ -45,7 +51,7 @@ def _group_order(xyz: torch.Tensor, voxel: float) -> Tuple[np.ndarray, np.ndarra
     q.floor_()
     qmin, qmax = torch.aminmax(q, dim=0)
     if not bool(torch.isfinite(torch.cat([qmin, qmax])).all()) or max(-qmin.min(), qmax.max()) >= _KEY_LIMIT:
-        raise ValueError("voxel_pool needs finite coordinates whose voxel keys fit in int64")
+        raise PPMOptionError("voxel_pool needs finite coordinates whose voxel keys fit in int64")
     sx, sy, sz = (int(v) + 1 for v in (qmax - qmin).tolist())
     idx_bits = max(1, (n - 1).bit_length())
     key_bits = (sx * sy * sz - 1).bit_length()
@@ -71,7 +77,7 @@ def voxel_pool(
 ) -> Tuple[Float[np.ndarray, "M 3"], UInt8[np.ndarray, "M 3"]]:
     """One point per occupied voxel ``floor(p / voxel)``: mean position (float64), mean colour rounded half-up."""
     if voxel <= 0:
-        raise ValueError(f"voxel must be > 0, got {voxel}")
+        raise PPMOptionError(f"voxel must be > 0, got {voxel}")
     xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
     rgb = np.asarray(rgb).reshape(-1, 3)
     if rgb.shape[0] != xyz.shape[0]:
@@ -161,7 +167,7 @@ def progressive_prune(
     ``tau <- tau * exp(beta * N / M0)``, N = count before ("reference") or after ("paper") it.
     """
     if tau_update not in ("reference", "paper"):
-        raise ValueError(f"tau_update must be 'reference' or 'paper', got {tau_update!r}")
+        raise PPMOptionError(f"tau_update must be 'reference' or 'paper', got {tau_update!r}")
     xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
     rgb = np.asarray(rgb).reshape(-1, 3)
     m0 = xyz.shape[0]

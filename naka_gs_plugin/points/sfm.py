@@ -21,12 +21,14 @@ import pycolmap
 from jaxtyping import Float, UInt8
 from PIL import Image
 
+from naka_gs_plugin.errors import UserError
+
 MatchingMethod = Literal["exhaustive", "sequential"]
 CameraModel = Literal["OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"]
 """COLMAP camera models whose parameters map onto nerfstudio's OpenCV perspective camera."""
 
 
-class SfMError(RuntimeError):
+class SfMError(UserError, RuntimeError):
     """pycolmap produced no usable result; the message says what was found and what to try."""
 
 

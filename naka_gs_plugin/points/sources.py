@@ -32,6 +32,7 @@ import numpy as np
 from jaxtyping import Float, UInt8
 
 from naka_gs_plugin.data.safe_io import atomic_write
+from naka_gs_plugin.errors import UserError
 
 SCENE_SOURCES = ("sparse/0", "sparse", "colmap_sparse/0", "points.ply")
 """``auto`` candidates inside a scene folder, in order: ``naka-gs-process-data``'s model, a VGGT
@@ -40,7 +41,7 @@ folder layout, LOM's COLMAP model, the simulator's cloud."""
 CAMERAS_JSON = "points_cameras.json"
 
 
-class PointSourceError(ValueError):
+class PointSourceError(UserError, ValueError):
     """A point source is missing or malformed; the message names the file and the fix, on one line."""
 
 

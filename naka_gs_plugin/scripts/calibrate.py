@@ -2,18 +2,20 @@
 
 PAIRS is a folder with ``low/`` and ``high/`` (same file names) or a ``lowlight-data`` scene with
 ``transforms_reference.json`` (:mod:`naka_gs_plugin.data.pairs`). The pairs are checked and aligned (one line
-per bad pair, exit status 2), each pair's exposure ratio is printed, the dark images go through the enhancement
+per bad pair, ``naka-gs: <message>``, exit status 1), each pair's exposure ratio is printed, the dark images go through the enhancement
 chain a run uses (``--enhance.*``, the same cache), and a camera profile is fitted from the chain's output to the
 normal images (:mod:`naka_gs_plugin.enhance.profile`). Writes PROFILE (a .json file) and a before/after sheet
 beside it (rows: dark, enhanced without the profile, with it, normal). Use it with
 ``ns-train naka-gs --pipeline.datamanager.enhance.profile PROFILE`` or ``naka-gs-enhance --enhance.profile PROFILE``.
+Both files are written into a hidden sibling folder and moved into place when complete (the profile last); an
+existing PROFILE is replaced only if it is a camera profile, and Ctrl-C or SIGTERM removes the unfinished output and
+exits 130 / 143.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import resource
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,17 +28,26 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 
 from naka_gs_plugin.data.pairs import Pair, find_pairs, load_pairs
-from naka_gs_plugin.data.safe_io import UnsafeOutputError, atomic_write, atomic_write_bytes
+from naka_gs_plugin.data.safe_io import OutputFile, UnsafeOutputError, staged_output
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig, EnhanceOptionError, Enhancer
 from naka_gs_plugin.enhance.profile import CameraProfile, CameraProfileError, apply_profile, chain_key, fit_profile
 from naka_gs_plugin.enhance.stages import ExposureStage
-from naka_gs_plugin.errors import is_user_error
 from naka_gs_plugin.metrics import psnr
+from naka_gs_plugin.scripts import run
 from naka_gs_plugin.sheet import contact_sheet
 
 
 def _log(message: str) -> None:
     CONSOLE.log(f"[naka-gs] {message}", markup=False)
+
+
+def is_profile(path: Path) -> bool:
+    """Whether ``path`` is a camera profile file (one that ``--out`` may replace)."""
+    try:
+        CameraProfile.load(path, "--out")
+    except CameraProfileError:
+        return False
+    return True
 
 
 @dataclass
@@ -62,13 +73,6 @@ class Calibrate:
             raise UnsafeOutputError(
                 f"--out {self.out}: a camera profile is a .json file -- pass e.g. --out camera.json"
             )
-        if self.out.exists():
-            try:
-                CameraProfile.load(self.out, "--out")
-            except CameraProfileError:
-                raise UnsafeOutputError(
-                    f"--out {self.out} exists and is not a camera profile -- choose another path (it is not replaced)"
-                ) from None
         if self.enhance.profile is not None:
             raise EnhanceOptionError(
                 f"--enhance.profile {self.enhance.profile}: calibration fits a profile, it does not apply one -- drop it"
@@ -80,7 +84,14 @@ class Calibrate:
         """Check the pairs, fit, write the profile (and sheet); returns the profile."""
         start = time.perf_counter()
         self._check_out()
-        pairs = load_pairs(find_pairs(self.pairs))
+        found = find_pairs(self.pairs)
+        inputs = sorted({p.parent for pair in found for p in (pair.low_path, pair.high_path)})
+        output = OutputFile("a camera profile", is_profile)
+        with staged_output(self.out, tool="naka-gs-calibrate", what="--out", inputs=inputs, file=output) as stage:
+            return self._calibrate(found, stage, start)
+
+    def _calibrate(self, found: Sequence[Pair], stage: Path, start: float) -> CameraProfile:
+        pairs = load_pairs(list(found))
         for pair in pairs:
             _log(
                 f"pair {pair.name}: exposure ratio x{pair.exposure_ratio:.1f}, aligned by "
@@ -120,8 +131,7 @@ class Calibrate:
             )
         peak_gb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
         profile.fit = {**stats, "pairs": len(pairs), "total_seconds": round(time.perf_counter() - start, 1)}
-        self.out.parent.mkdir(parents=True, exist_ok=True)
-        atomic_write_bytes(self.out, profile.to_json().encode())
+        (stage / self.out.name).write_bytes(profile.to_json().encode())
         mean = lambda key: float(np.mean([row[key] for row in profile.pairs]))  # noqa: E731
         _log(
             f"profile {self.out}: {len(pairs)} pairs, PSNR against the normal images {mean('psnr_before'):.2f} -> "
@@ -129,29 +139,22 @@ class Calibrate:
             f"all {profile.fit['total_seconds']:.0f} s, peak memory {peak_gb:.1f} GB"
         )
         if self.sheet_pairs > 0:
-            self._sheet(pairs, unprofiled, profiled)
+            self._sheet(stage, pairs, unprofiled, profiled)
         return profile
 
-    def _sheet(self, pairs: Sequence[Pair], enhanced: list, profiled: list) -> None:
+    def _sheet(self, stage: Path, pairs: Sequence[Pair], enhanced: list, profiled: list) -> None:
         k = min(self.sheet_pairs, len(pairs))
         pick = np.linspace(0, len(pairs) - 1, k).round().astype(int)
         rows = [[pairs[i].low for i in pick], [enhanced[i].numpy() for i in pick], [profiled[i].numpy() for i in pick]]
         rows.append([pairs[i].high for i in pick])
         sheet = contact_sheet(rows)
-        atomic_write(self.sheet_path(), lambda tmp: Image.fromarray(sheet).save(tmp, format="PNG"))
+        Image.fromarray(sheet).save(stage / self.sheet_path().name, format="PNG")
         _log(f"sheet (dark | enhanced | with the profile | normal): {self.sheet_path()}")
 
 
 def entrypoint(args: Optional[Sequence[str]] = None) -> None:
-    """Console script ``naka-gs-calibrate``; bad input prints one line per problem and exits with status 2."""
-    cli = tyro.cli(Calibrate, args=args)
-    try:
-        cli.main()
-    except Exception as err:
-        if not (is_user_error(err) or isinstance(err, OSError)):
-            raise
-        CONSOLE.print(f"naka-gs-calibrate: {err}".replace("\n", "\nnaka-gs-calibrate: "), markup=False, soft_wrap=True)
-        sys.exit(2)
+    """Console script ``naka-gs-calibrate`` (:func:`naka_gs_plugin.scripts.run`); bad pairs print one line each."""
+    run(Calibrate.main, Calibrate, args)
 
 
 if __name__ == "__main__":

@@ -26,13 +26,13 @@ from typing import Dict, List, Optional, Sequence
 
 import numpy as np
 import torch
-import tyro
 from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 
 from naka_gs_plugin.data.images import read_rgb
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
 from naka_gs_plugin.metrics import psnr
+from naka_gs_plugin.scripts import run
 from naka_gs_plugin.sheet import contact_sheet
 from naka_gs_plugin.shipped import CONFIGS
 from naka_gs_plugin.sim.generate import generate
@@ -160,8 +160,8 @@ class Demo:
 
 
 def entrypoint(args: Optional[Sequence[str]] = None) -> None:
-    """Console script ``naka-gs-demo``."""
-    tyro.cli(Demo, args=args).main()
+    """Console script ``naka-gs-demo`` (:func:`naka_gs_plugin.scripts.run`)."""
+    run(Demo.main, Demo, args)
 
 
 if __name__ == "__main__":

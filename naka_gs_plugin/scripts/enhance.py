@@ -14,15 +14,14 @@ to ``scores.json`` and printed.
 
 The output folder is built next to --out and moved into place when complete; --out may not be,
 contain or lie inside a folder of input images, and an existing non-empty --out is replaced only
-if it holds nothing but an earlier naka-gs-enhance output. Errors print one line (exit status 2).
+if it holds nothing but an earlier naka-gs-enhance output. Ctrl-C or SIGTERM removes the unfinished output and
+exits 130 / 143; errors print one line ``naka-gs: <message>`` (exit status 1).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
-import shutil
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,16 +35,10 @@ from PIL import Image
 
 from naka_gs_plugin.data.images import read_rgb
 from naka_gs_plugin.data.lowlight_dataparser import LowLightDataError, LowLightDataParserConfig, read_split
-from naka_gs_plugin.data.safe_io import (
-    UnsafeOutputError,
-    check_not_input,
-    check_replaceable,
-    publish_dir,
-    staging_dir,
-)
+from naka_gs_plugin.data.safe_io import UnsafeOutputError, staged_output
 from naka_gs_plugin.datamanager import LowLightDatamanagerConfig
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
-from naka_gs_plugin.errors import is_user_error
+from naka_gs_plugin.scripts import run
 from naka_gs_plugin.sheet import contact_sheet
 
 
@@ -72,38 +65,32 @@ class Enhance:
     def main(self) -> List[Path]:
         """Write the enhanced PNGs (and sheet) to ``out``; returns their final paths."""
         originals = read_split(self.scene, "transforms_train.json").images
-        check_not_input(self.out, sorted({p.parent for p in originals}), "--out")
-        check_replaceable(self.out, "--out", None)
-        names = [f"{p.stem}.png" for p in originals]
-        if len(set(names)) < len(names):
-            dup = next(n for n in names if names.count(n) > 1)
-            raise UnsafeOutputError(
-                f"{self.scene}: two training images would both be written as --out/{dup} -- rename one"
-            )
-        datamanager = LowLightDatamanagerConfig(
-            dataparser=LowLightDataParserConfig(data=self.scene, downscale_factor=self.downscale_factor),
-            enhance=self.enhance,
-        ).setup(device="cpu")
-        # Quiet: nerfstudio logs its loading step, and a bad image must print one line, the error.
-        quiet, CONSOLE.quiet = CONSOLE.quiet, True
-        try:
-            images = [data["image"] for data in datamanager.load_unenhanced_train()]
-        finally:
-            CONSOLE.quiet = quiet
-        start = time.perf_counter()
-        enhanced = datamanager.enhancer.enhance_images(images, description=f"Enhancing {self.scene.name}")
-        seconds = time.perf_counter() - start
-        references = self._references(originals)
-        scores = None if references is None else score_against(enhanced, references, [p.name for p in originals])
-        out = self.out.resolve()
-        stage = staging_dir(out)
-        try:
-            if scores is not None:
+        inputs = sorted({p.parent for p in originals})
+        with staged_output(self.out, tool="naka-gs-enhance", what="--out", inputs=inputs) as stage:
+            names = [f"{p.stem}.png" for p in originals]
+            if len(set(names)) < len(names):
+                dup = next(n for n in names if names.count(n) > 1)
+                raise UnsafeOutputError(
+                    f"{self.scene}: two training images would both be written as --out/{dup} -- rename one"
+                )
+            datamanager = LowLightDatamanagerConfig(
+                dataparser=LowLightDataParserConfig(data=self.scene, downscale_factor=self.downscale_factor),
+                enhance=self.enhance,
+            ).setup(device="cpu")
+            # Quiet: nerfstudio logs its loading step, and a bad image must print one line, the error.
+            quiet, CONSOLE.quiet = CONSOLE.quiet, True
+            try:
+                images = [data["image"] for data in datamanager.load_unenhanced_train()]
+            finally:
+                CONSOLE.quiet = quiet
+            start = time.perf_counter()
+            enhanced = datamanager.enhancer.enhance_images(images, description=f"Enhancing {self.scene.name}")
+            seconds = time.perf_counter() - start
+            references = self._references(originals)
+            if references is not None:
+                scores = score_against(enhanced, references, [p.name for p in originals])
                 (stage / "scores.json").write_text(json.dumps(scores, indent=1))
             self._write(stage, names, images, enhanced, seconds)
-            publish_dir(stage, out, "naka-gs-enhance", "--out", None)
-        finally:
-            shutil.rmtree(stage, ignore_errors=True)  # our own staging folder; gone already once published
         return [self.out / name for name in names]
 
     def _references(self, originals: List[Path]) -> Optional[List[Path]]:
@@ -186,15 +173,8 @@ def score_against(
 
 
 def entrypoint(args: Optional[Sequence[str]] = None) -> None:
-    """Console script ``naka-gs-enhance``; bad input prints one line and exits with status 2."""
-    cli = tyro.cli(Enhance, args=args)
-    try:
-        cli.main()
-    except Exception as err:
-        if not (is_user_error(err) or isinstance(err, OSError)):  # OSError: disk full or permissions, names the file
-            raise
-        CONSOLE.print(f"naka-gs-enhance: {err}", markup=False, soft_wrap=True)
-        sys.exit(2)
+    """Console script ``naka-gs-enhance`` (:func:`naka_gs_plugin.scripts.run`)."""
+    run(Enhance.main, Enhance, args)
 
 
 if __name__ == "__main__":

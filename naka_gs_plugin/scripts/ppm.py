@@ -21,11 +21,13 @@ import tyro
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from naka_gs_plugin.data.safe_io import atomic_write_bytes
+from naka_gs_plugin.errors import UserError
 from naka_gs_plugin.points.seeding import PointInitConfig, PPMSettings, TrainingFrame, describe, prepare_points
 from naka_gs_plugin.points.sources import PointSourceError, find_scene_source, load_points, source_files, write_ply
+from naka_gs_plugin.scripts import run
 
 
-class PpmOutputError(ValueError):
+class PpmOutputError(UserError, ValueError):
     """The output cannot be written (read-only place, a file in the way, an input); one line."""
 
 
@@ -88,12 +90,8 @@ class Ppm(PPMSettings):
 
 
 def entrypoint(args: Optional[Sequence[str]] = None) -> None:
-    """Console script ``naka-gs-ppm``; a bad source or setting prints one line and exits with status 2."""
-    try:
-        tyro.cli(Ppm, args=args, config=(tyro.conf.FlagConversionOff,)).main()  # --ppm True/False, as ns-train
-    except (PointSourceError, ValueError) as err:
-        CONSOLE.print(f"[naka-gs] error: {err}", markup=False, style="bold red", soft_wrap=True)
-        raise SystemExit(2) from None
+    """Console script ``naka-gs-ppm`` (:func:`naka_gs_plugin.scripts.run`)."""
+    run(Ppm.main, Ppm, args, config=(tyro.conf.FlagConversionOff,))  # --ppm True/False, as ns-train
 
 
 if __name__ == "__main__":

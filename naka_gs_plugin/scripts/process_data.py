@@ -37,25 +37,17 @@ import cv2
 import numpy as np
 import pycolmap
 import torch
-import tyro
 from nerfstudio.utils.rich_utils import CONSOLE
 from rich.table import Table
 
 from naka_gs_plugin.data.images import IMAGE_SUFFIXES, ImageReadError, read_rgb, write_image
-from naka_gs_plugin.data.safe_io import (
-    RemovedOnStop,
-    UnsafeOutputError,
-    check_not_input,
-    check_replaceable,
-    publish_dir,
-    staging_dir,
-)
+from naka_gs_plugin.data.safe_io import UnsafeOutputError, staged_output
 from naka_gs_plugin.enhance.checkpoint import DEFAULT_WEIGHTS
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
+from naka_gs_plugin.errors import UserError
 from naka_gs_plugin.points.sfm import (
     CameraModel,
     MatchingMethod,
-    SfMError,
     c2w_opencv_of,
     database_progress,
     database_stats,
@@ -65,6 +57,7 @@ from naka_gs_plugin.points.sfm import (
     quiet_colmap,
 )
 from naka_gs_plugin.progress import StageProgress, progress_from
+from naka_gs_plugin.scripts import run
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v")
 MIN_REGISTERED = 3
@@ -81,7 +74,7 @@ GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 """Right-multiply an OpenCV camera-to-world to get the OpenGL one (and back)."""
 
 
-class ProcessDataError(ValueError):
+class ProcessDataError(UserError, ValueError):
     """Bad input or failed reconstruction; one line naming the file or folder and what to try."""
 
 
@@ -204,18 +197,18 @@ class ProcessData:
 
     def main(self) -> Dict[str, object]:
         self._check_args()
-        out = self.output_dir.resolve()
-        stage = staging_dir(out)
         try:
-            with RemovedOnStop(stage, out, "naka-gs-process-data") as stop:
+            with staged_output(
+                self.output_dir,
+                tool="naka-gs-process-data",
+                what="--output-dir",
+                inputs=[self.data],
+                overwrite=self.overwrite,
+            ) as stage:
                 report = self._process(stage)
-                with stop.publishing():
-                    publish_dir(stage, out, "naka-gs-process-data", "--output-dir", self.overwrite)
         except UnsafeOutputError as err:
             raise ProcessDataError(str(err)) from None
-        finally:
-            shutil.rmtree(stage, ignore_errors=True)  # our own staging folder; gone already once published
-        report["scene"] = str(out)
+        report["scene"] = str(self.output_dir.resolve())
         self._print(report)
         return report
 
@@ -230,11 +223,6 @@ class ProcessData:
             raise ProcessDataError(f"--eval-every {self.eval_every}: must be >= 2 (one view in N is held out)")
         if self.max_image_size < 64 or self.video_fps <= 0 or self.sequential_overlap < 1:
             raise ProcessDataError("--max-image-size must be >= 64, --video-fps > 0, --sequential-overlap >= 1")
-        try:
-            check_not_input(self.output_dir, [self.data], "--output-dir")
-            check_replaceable(self.output_dir, "--output-dir", self.overwrite)
-        except UnsafeOutputError as err:
-            raise ProcessDataError(str(err)) from None
 
     def _process(self, stage: Path) -> Dict[str, object]:
         seconds: Dict[str, float] = {}
@@ -450,12 +438,8 @@ class ProcessData:
 
 
 def entrypoint(args: Optional[Sequence[str]] = None) -> None:
-    """Console script ``naka-gs-process-data``; a failure prints one line naming its cause."""
-    process = tyro.cli(ProcessData, args=args)
-    try:
-        process.main()
-    except (ProcessDataError, SfMError, OSError) as err:  # OSError: disk full or permissions, names the file
-        raise SystemExit(f"naka-gs-process-data: {err}") from None
+    """Console script ``naka-gs-process-data`` (:func:`naka_gs_plugin.scripts.run`)."""
+    run(ProcessData.main, ProcessData, args)
 
 
 if __name__ == "__main__":

@@ -5,14 +5,13 @@ Sources, recipe and checkpoints are described in :mod:`naka_gs_plugin.enhance.co
 
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import List, Optional, Sequence
 
-import tyro
-
-from naka_gs_plugin.enhance.correction_train import TrainConfig, config_from_yaml, train
+from naka_gs_plugin.enhance.correction_train import CorrectionTrainingError, TrainConfig, config_from_yaml, train
+from naka_gs_plugin.errors import UserError
+from naka_gs_plugin.scripts import run
 
 
 @dataclass
@@ -23,25 +22,25 @@ class TrainCorrection(TrainConfig):
         train(self)
 
 
-def entrypoint(args: Optional[Sequence[str]] = None) -> None:
-    """Console script ``naka-gs-train-correction``: ``--config RECIPE`` sets the defaults, later flags override."""
-    argv = list(sys.argv[1:] if args is None else args)
-    default = TrainCorrection()
-    if "--config" in argv:
-        i = argv.index("--config")
-        if i + 1 >= len(argv):
-            raise SystemExit(
-                "naka-gs-train-correction: --config needs a YAML path, e.g. configs/correction/default.yaml"
-            )
-        try:
-            default = TrainCorrection(**vars(config_from_yaml(Path(argv[i + 1]))))
-        except (FileNotFoundError, ValueError, TypeError) as err:
-            raise SystemExit(f"naka-gs-train-correction: {err}") from None
-    correction = tyro.cli(TrainCorrection, default=default, args=argv)
+def recipe_defaults(argv: List[str]) -> TrainCorrection:
+    """The values flags start from: those of ``--config RECIPE`` when the arguments name one, else the defaults."""
+    if "--config" not in argv:
+        return TrainCorrection()
+    i = argv.index("--config")
+    if i + 1 >= len(argv):
+        raise CorrectionTrainingError("--config needs a YAML path, e.g. configs/correction/default.yaml")
     try:
-        correction.main()
-    except (FileNotFoundError, ValueError) as err:
-        raise SystemExit(f"naka-gs-train-correction: {err}") from None
+        return TrainCorrection(**vars(config_from_yaml(Path(argv[i + 1]))))
+    except (ValueError, TypeError) as err:
+        if isinstance(err, UserError):
+            raise
+        raise CorrectionTrainingError(f"{argv[i + 1]}: {err}") from None
+
+
+def entrypoint(args: Optional[Sequence[str]] = None) -> None:
+    """Console script ``naka-gs-train-correction`` (:func:`naka_gs_plugin.scripts.run`): ``--config RECIPE`` sets
+    the defaults, later flags override."""
+    run(TrainCorrection.main, TrainCorrection, args, defaults=recipe_defaults)
 
 
 if __name__ == "__main__":

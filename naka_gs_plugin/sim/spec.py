@@ -30,10 +30,11 @@ from typing import Any, Dict, List, Literal, Optional, Tuple, Union, get_args, g
 import numpy as np
 import yaml
 
+from naka_gs_plugin.errors import UserError
 from naka_gs_plugin.shipped import CONFIGS, config_file
 
 
-class SimSpecError(ValueError):
+class SimSpecError(UserError, ValueError):
     """A scene spec is invalid; the message is one line: ``<file>: field '<field>': <problem>``."""
 
 

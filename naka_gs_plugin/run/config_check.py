@@ -10,8 +10,10 @@ file or from ns-train's options (``--max-num-iterations 0``, ``--pipeline.model.
 A config.yml that is not YAML, empty, or not a run's configuration fails inside upstream's loader before any of
 our code runs. ns-train's ``--load-config`` file is checked before it is read
 (:meth:`~naka_gs_plugin.trainer.NakaGSTrainerConfig.__post_init__`, :func:`check_config_file`); the commands that
-load a run read it in ``eval_setup``, whose errors :func:`config_file_error` turns into one line at the top of the
-command (:func:`install_excepthook`).
+load a run read it in ``eval_setup``, whose errors :mod:`naka_gs_plugin.run.nerfstudio_hooks` turns into these lines.
+
+The presets register themselves (:func:`register_presets`) so that a message can name an option's default without
+this module importing them: they are the roof of the package, this module a floor below.
 """
 
 from __future__ import annotations
@@ -19,13 +21,10 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import functools
-import linecache
-import sys
 import types
 import typing
 from pathlib import Path, PurePath
-from types import FrameType, TracebackType
-from typing import Any, Callable, Dict, Iterator, Literal, Optional, Tuple, Union
+from typing import Any, Dict, Iterator, Literal, Mapping, Optional, Tuple, Union
 
 import yaml
 
@@ -87,12 +86,18 @@ def _is_path_hint(hint: Any) -> bool:
     return any(isinstance(option, type) and issubclass(option, PurePath) for option in options)
 
 
+PRESETS: Dict[str, Any] = {}
+"""The registered presets' configs by method name (filled by :func:`register_presets`)."""
+
+
+def register_presets(configs: Mapping[str, Any]) -> None:
+    """Record the presets' configs (``method_name`` -> config), whose values the messages name as defaults."""
+    PRESETS.update(configs)
+
+
 def _default(config: Any, dotted: str) -> Any:
     """The value of ``dotted`` in the registered preset the run was made with, if there is one."""
-    from naka_gs_plugin.config import METHODS  # the presets import this module's importer
-
-    spec = METHODS.get(getattr(config, "method_name", None))
-    value: Any = spec.config if spec is not None else None
+    value: Any = PRESETS.get(getattr(config, "method_name", None))
     for part in dotted.split("."):
         value = value.get(part) if isinstance(value, dict) else getattr(value, part, None)
     return value
@@ -226,7 +231,7 @@ def yaml_error_line(path: Path, err: yaml.YAMLError) -> str:
     )
 
 
-def _unreadable_line(path: Path, err: Exception) -> str:
+def unreadable_line(path: Path, err: Exception) -> str:
     why = "not a text file" if isinstance(err, UnicodeDecodeError) else (getattr(err, "strerror", None) or str(err))
     return f"naka-gs: {path}: cannot read it ({why}) -- pass the config.yml ns-train wrote in a run folder"
 
@@ -237,7 +242,7 @@ def check_config_file(path: Path) -> None:
     try:
         text = Path(path).read_text()
     except (OSError, UnicodeDecodeError) as err:
-        raise SystemExit(_unreadable_line(path, err)) from None
+        raise SystemExit(unreadable_line(path, err)) from None
     try:
         loaded = yaml.load(text, Loader=yaml.Loader)
     except yaml.YAMLError as err:
@@ -245,48 +250,3 @@ def check_config_file(path: Path) -> None:
     line = config_file_problem(path, text, loaded) or run_config_problem(loaded, path)
     if line is not None:
         raise SystemExit(line)
-
-
-def config_file_error(exc: BaseException) -> Optional[Tuple[str, FrameType]]:
-    """The one line for ``exc``, and the ``eval_setup`` frame it passed, when it is upstream's ``eval_setup``
-    (ns-eval, ns-render, ns-export, ns-viewer) failing to read its config.yml: an error of the file's reading or
-    of its ``yaml.load``, or the ``assert`` after that of an empty file or one that holds no run configuration;
-    else None."""
-    tb: Optional[TracebackType] = exc.__traceback__
-    while tb is not None:
-        frame = tb.tb_frame
-        if frame.f_code.co_name == "eval_setup" and frame.f_globals.get("__name__") == "nerfstudio.utils.eval_utils":
-            break
-        tb = tb.tb_next
-    if tb is None or frame.f_locals.get("config_path") is None:
-        return None
-    path = Path(frame.f_locals["config_path"])
-    line = None
-    if "yaml.load(" in linecache.getline(frame.f_code.co_filename, tb.tb_lineno):
-        if isinstance(exc, yaml.YAMLError):
-            line = yaml_error_line(path, exc)
-        elif isinstance(exc, (OSError, UnicodeDecodeError)):
-            line = _unreadable_line(path, exc)
-    elif isinstance(exc, AssertionError) and tb.tb_next is None and "config" in frame.f_locals:
-        try:
-            line = config_file_problem(path, path.read_text(), frame.f_locals["config"])
-        except (OSError, UnicodeDecodeError):
-            return None
-    return (line, frame) if line is not None else None
-
-
-def _excepthook(previous, cleanup: Callable[[FrameType], None], exc_type, exc, tb) -> None:
-    found = config_file_error(exc) if exc is not None else None
-    if found is None:
-        previous(exc_type, exc, tb)
-        return
-    line, frame = found
-    cleanup(frame)
-    print(line, file=sys.stderr)  # the interpreter then exits with status 1, as for SystemExit(line)
-
-
-def install_excepthook(cleanup: Callable[[FrameType], None]) -> None:
-    """Make :func:`config_file_error`'s cases one line where they end a command (installed once per process);
-    ``cleanup(eval_setup_frame)`` runs first (ns-export removes the output folder it has just made)."""
-    if not isinstance(sys.excepthook, functools.partial) or sys.excepthook.func is not _excepthook:
-        sys.excepthook = functools.partial(_excepthook, sys.excepthook, cleanup)
