@@ -106,7 +106,7 @@ def make_scene(
 
 @dataclasses.dataclass(frozen=True)
 class SyntheticCase:
-    """A :func:`make_scene` scene (the scenes of ``tests/test_rasterize.py``) and its rasterize mode."""
+    """A :func:`make_scene` scene (the scenes of ``tests/model/test_rasterize.py``) and its rasterize mode."""
 
     scene_kwargs: Dict[str, object]
     rasterize_mode: Literal["classic", "antialiased"] = "classic"

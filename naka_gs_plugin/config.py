@@ -50,7 +50,7 @@ FAST_STEPS, FAST_DECAY_STEPS = 3000, 4300
 GPU_EVAL_IMAGE_STEPS, CPU_EVAL_IMAGE_STEPS = 100, 500
 """Steps between the evaluations of one test view during training (logged to tensorboard, wandb or comet; the
 viewer shows none): splatfacto's on a GPU. On a CPU a test view's full-size render and its PSNR / SSIM / LPIPS
-cost several training steps and training does not depend on them (``tests/test_trainer_safety.py``), so they
+cost several training steps and training does not depend on them (``tests/run/test_trainer_safety.py``), so they
 run less often, and all test views are evaluated once, half way (records/2026-11-29-evaluating-during-training.md)."""
 
 

@@ -15,7 +15,7 @@ class UserError(Exception):
     each message is one line naming the file or option and the fix. A command ends on one with the line
     ``naka-gs: <message>`` (exit status 1, no traceback); any other exception is a bug and keeps its traceback.
     Subclasses keep the builtin base that callers catch (``class ImageReadError(UserError, ValueError)``).
-    tests/test_run_folder.py checks that every ``*Error`` class of the package is one, or a ``SystemExit``."""
+    tests/run/test_run_folder.py checks that every ``*Error`` class of the package is one, or a ``SystemExit``."""
 
 
 def signal_exit_status(signum: int) -> int:

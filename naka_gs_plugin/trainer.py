@@ -28,8 +28,8 @@ runs (:mod:`naka_gs_plugin.config_check`), as is a checkpoint of a scene with an
 ``ns-export`` never replaces a file already in its ``--output-dir``.
 
 Only the hooks are overridden; loading the chosen file is still upstream's code. The upstream methods
-whose behaviour this relies on are pinned by source hash in ``tests/test_trainer_safety.py`` and
-``tests/test_run_folder.py``.
+whose behaviour this relies on are pinned by source hash in ``tests/run/test_trainer_safety.py`` and
+``tests/run/test_run_folder.py``.
 """
 
 from __future__ import annotations
@@ -53,7 +53,7 @@ from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.misc import step_check
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from naka_gs_plugin.errors import signal_exit_status, user_error_exit
+from naka_gs_plugin.errors import OS_ERROR_FIXES, os_error_exit, signal_exit_status, user_error_exit
 from naka_gs_plugin.run import nerfstudio_hooks as hooks
 from naka_gs_plugin.run.checkpoints import (
     PARTIAL_PREFIX,
@@ -102,6 +102,7 @@ class NakaGSTrainer(Trainer):
     """nerfstudio's ``Trainer`` with atomic checkpoints, Ctrl-C / SIGTERM saving and corrupt-checkpoint fallback."""
 
     def __init__(self, config: TrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
+        hooks.activate()  # a naka-gs run: its checkpoints load with numpy's scalars as safe globals
         if isinstance(config, NakaGSTrainerConfig):
             config.resolve_device()  # upstream picks the device from the config here
         super().__init__(config, local_rank, world_size)
@@ -126,6 +127,8 @@ class NakaGSTrainer(Trainer):
         except BaseException as err:
             self._discard_new_run_folder()
             exit_ = user_error_exit(err)
+            if exit_ is None and isinstance(err, OSError) and err.errno in OS_ERROR_FIXES:
+                exit_ = os_error_exit(err)  # a path too long, a full disk...: the user's to fix
             if exit_ is not None:
                 raise exit_ from None
             raise
@@ -381,6 +384,23 @@ class NakaGSTrainer(Trainer):
         )
 
 
+RUN_FILE_ROOM = 100
+"""Characters a run folder's path leaves for what a run writes in it: tensorboard's
+``events.out.tfevents.<time>.<host>.<pid>.<n>`` (written from a thread, whose error would be a traceback) and
+``nerfstudio_models/step-<9 digits>.ckpt``, with room for a long host name."""
+
+
+def _path_max(folder: str) -> int:
+    """The longest path the system takes (4,096 on Linux), asked of ``folder``'s nearest existing parent."""
+    probe = folder
+    while not os.path.exists(probe) and os.path.dirname(probe) != probe:
+        probe = os.path.dirname(probe)
+    try:
+        return os.pathconf(probe, "PC_PATH_MAX")
+    except (OSError, ValueError, AttributeError):
+        return 4096
+
+
 @dataclass
 class NakaGSMachineConfig(MachineConfig):
     """nerfstudio's machine options, with a device that defaults to the machine's own."""
@@ -446,7 +466,34 @@ class NakaGSTrainerConfig(TrainerConfig):
         self.resolve_device()
         check_run_config(self, None)
         super().set_timestamp()
+        self._refuse_a_run_folder_outside_output_dir()
         self._refuse_a_run_folder_in_use()
+
+    def _refuse_a_run_folder_outside_output_dir(self) -> None:
+        """Exit with one line when ``--experiment-name``, ``--method-name`` or ``--timestamp`` would put the run
+        folder outside ``--output-dir`` (``..``, an absolute path): a run stays in the folder it was asked into."""
+        out = os.path.normpath(os.path.abspath(self.output_dir))
+        for flag, value in (
+            ("--experiment-name", self.experiment_name),
+            ("--method-name", self.method_name),
+            ("--timestamp", self.timestamp),
+        ):
+            if value is None:
+                continue
+            inside = os.path.normpath(os.path.join(out, str(value)))
+            if os.path.isabs(str(value)) or ".." in Path(str(value)).parts or os.path.commonpath([out, inside]) != out:
+                raise SystemExit(
+                    f"naka-gs: {flag} {value}: the run folder would lie outside --output-dir {self.output_dir} -- "
+                    f"give {flag} a plain name (no '..', not an absolute path), or choose another --output-dir"
+                )
+        run = os.path.abspath(self.get_base_dir())
+        limit = _path_max(out) - RUN_FILE_ROOM
+        if len(run) > limit:
+            raise SystemExit(
+                f"naka-gs: --output-dir {str(self.output_dir)[:60]}...: the run folder's path is {len(run)} characters, "
+                f"and the files a run writes in it need it under {limit} (the system allows {limit + RUN_FILE_ROOM}) "
+                "-- choose a shorter --output-dir"
+            )
 
     def _refuse_a_run_folder_in_use(self) -> None:
         """Exit with one line when the run folder holds a run's config.yml that this run does not resume."""

@@ -16,9 +16,10 @@ repo=$PWD
 env=${NAKA_GS_COMPAT_VENV:-$repo/.venv-oldest}
 set_file=$(realpath "${NAKA_GS_COMPAT_SET:-scripts/constraints-oldest.txt}")
 base_python=${NAKA_GS_COMPAT_PYTHON:-$(.venv/bin/python -c 'import sys; print(sys._base_executable)')}
-smoke=(tests/test_cpu.py tests/test_torch_load.py tests/test_naka.py tests/test_exposure.py tests/test_profile.py
-  tests/test_rasterize.py tests/test_rasterize_cpu_fast.py tests/test_project_cpu_fast.py tests/test_composite.py
-  tests/test_ssim.py tests/test_model.py tests/test_dataparser.py tests/test_lpips.py)
+smoke=(tests/leaf/test_cpu.py tests/run/test_torch_load.py tests/data/test_dataparser.py
+  tests/enhance/test_naka.py tests/enhance/test_exposure.py tests/enhance/test_profile.py
+  tests/model/test_rasterize.py tests/model/test_rasterize_cpu_fast.py tests/model/test_project_cpu_fast.py
+  tests/model/test_composite.py tests/model/test_ssim.py tests/model/test_model.py tests/model/test_lpips.py)
 tests=("$@")
 [ ${#tests[@]} -gt 0 ] || tests=(-m "not slow" "${smoke[@]}")
 pip_q=(-q --disable-pip-version-check)

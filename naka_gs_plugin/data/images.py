@@ -8,6 +8,8 @@ are read with OpenCV at full precision into float32 sRGB in [0, 1].
 Every read is checked in full: OpenCV fills the missing part of a truncated JPEG with grey and
 only prints a libjpeg warning, so JPEGs are also decoded by PIL with truncated images refused
 (whatever ``PIL.ImageFile.LOAD_TRUNCATED_IMAGES`` says); PNG/TIFF decoders already fail on a cut file.
+A file is read only when it is a regular file (:func:`~naka_gs_plugin.data.safe_io.read_regular`): a FIFO or a
+device in a scene is one line, never a read that blocks or never ends.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ import numpy as np
 from jaxtyping import Float
 from PIL import Image, ImageFile
 
+from naka_gs_plugin.data.safe_io import atomic_write, read_regular
 from naka_gs_plugin.errors import UserError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
@@ -32,15 +35,18 @@ class ImageReadError(UserError, ValueError):
 
 
 _RESTORE = "restore the complete file (copy it again from the camera or backup) or remove it from the scene"
+REPLACE_IMAGE = "replace it with the image file, or remove it from the scene"
+"""The fix of an image path that is not a regular file (a FIFO, a device, a folder)."""
 
 
-def _fix(path: Path) -> str:
-    """How to mend an unreadable ``path``: the user's file is restored; a cache file of ours is deleted."""
+def _fix(path: Path, user: str = _RESTORE) -> str:
+    """How to mend an unreadable ``path``: the user's file is mended as ``user`` says; a cache file of ours is
+    deleted."""
     from naka_gs_plugin.data.cache import cache_root_of  # here: the reader imports without nerfstudio (GPU side)
 
     root = cache_root_of(path)
     if root is None:
-        return _RESTORE
+        return user
     return (
         f"this is a naka-gs cache file, not your photo: delete it (or the cache folder {root}, which NAKA_GS_CACHE "
         "sets) and run again to rebuild it"
@@ -63,7 +69,7 @@ def _check_jpeg_complete(path: Path, data: bytes) -> None:
 def read_raw(path: Path) -> np.ndarray:
     """An image file decoded as stored (OpenCV: BGR(A) or grey, uint8/uint16/float), checked complete."""
     try:
-        data = Path(path).read_bytes()
+        data = read_regular(path, fix=_fix(Path(path), REPLACE_IMAGE))
     except OSError as err:
         raise ImageReadError(f"{path}: cannot be read ({err.strerror or err}) -- {_fix(path)}") from None
     if not data:
@@ -85,7 +91,6 @@ def write_image(path: Path, bgr: np.ndarray, params: Sequence[int] = ()) -> Path
     On a full disk OpenCV may report success for a file cut short; reading it back is what catches that.
     Raises :class:`OSError` (``path`` untouched) when the file cannot be written complete.
     """
-    from naka_gs_plugin.data.safe_io import atomic_write  # here: the reader imports without nerfstudio (GPU side)
 
     def write(tmp: Path) -> bool:
         if not cv2.imwrite(str(tmp), bgr, list(params)):

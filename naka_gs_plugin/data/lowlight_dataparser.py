@@ -19,6 +19,10 @@ and any external point cloud share one frame (``dataparser_transform`` [3, 4] an
 ``downscale_factor`` writes downscaled copies to a writable cache (the scene may be read-only).
 Eval frames whose images are all missing still load their poses; ``metadata["has_ground_truth"]``
 is then ``False`` and the datamanager refuses metrics with a one-line message.
+
+Every file read (the transforms jsons, every split's images) must be a regular file: a FIFO, a device
+(``file_path: /dev/zero``) or a socket is refused in one line naming it before anything is opened
+(:func:`~naka_gs_plugin.data.safe_io.regular_file`), and so is a path longer than the system allows.
 """
 
 from __future__ import annotations
@@ -27,6 +31,7 @@ import errno
 import hashlib
 import json
 import math
+import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import List, Literal, Optional, Tuple, Type
@@ -45,7 +50,15 @@ from PIL import Image
 from torch import Tensor
 
 from naka_gs_plugin.data.cache import default_cache_dir, read_sealed, seal
-from naka_gs_plugin.data.images import IMAGE_SUFFIXES, ImageReadError, read_raw, to_rgb01, write_image
+from naka_gs_plugin.data.images import (
+    IMAGE_SUFFIXES,
+    REPLACE_IMAGE,
+    ImageReadError,
+    read_raw,
+    to_rgb01,
+    write_image,
+)
+from naka_gs_plugin.data.safe_io import input_stat, open_regular, read_regular, regular_file, shown_path
 from naka_gs_plugin.errors import UserError
 
 MAX_AUTO_RESOLUTION = 1600
@@ -112,13 +125,16 @@ def _fail(path: Path, problem: str, fix: str) -> LowLightDataError:
 
 
 def load_transforms(path: Path) -> dict:
-    """Read and validate a transforms json; raises :class:`LowLightDataError` naming the file."""
-    if not path.exists():
+    """Read and validate a transforms json; raises :class:`LowLightDataError` naming the file (a FIFO or a device
+    there: :class:`~naka_gs_plugin.data.safe_io.InputFileError`, before it is opened)."""
+    fix = "replace it with the transforms json file"
+    if not regular_file(path, fix=fix):
         raise _fail(
             path, "file not found", "every lowlight-data scene needs transforms_train.json and transforms_test.json"
         )
     try:
-        meta = json.loads(path.read_text(encoding="utf-8-sig"))  # utf-8-sig: a byte-order mark (Windows editors) too
+        # utf-8-sig: a byte-order mark (Windows editors) too
+        meta = json.loads(read_regular(path, fix=fix).decode("utf-8-sig"))
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
         raise _fail(
             path, f"malformed json ({err})", "fix the json syntax (e.g. check with `python -m json.tool`)"
@@ -184,11 +200,14 @@ def _is_link_loop(path: Path) -> bool:
 
 
 def _resolve_image(scene: Path, frame: dict, index: int, path: Path) -> Path:
+    """The image file of frame ``index``: a regular file, or a path where none is (missing images are judged by the
+    caller); a FIFO, a device, a socket or a folder there, or a path too long, is one line naming the frame."""
     fp = frame.get("file_path")
     if not isinstance(fp, str) or not fp.strip():
         raise _fail(
             path, f"frame {index} has no usable 'file_path' ({fp!r})", "set it to the image path relative to the scene"
         )
+    where = f"{path}: frame {index} file_path {shown_path(fp)}"
     if _is_link_loop(scene / fp):  # pathlib's resolve() would raise RuntimeError("Symlink loop from ...")
         raise _fail(
             path,
@@ -196,13 +215,15 @@ def _resolve_image(scene: Path, frame: dict, index: int, path: Path) -> Path:
             "replace the link with the image file, or point it at one",
         )
     candidate = (scene / fp).resolve() if not Path(fp).is_absolute() else Path(fp)
-    if "\\" in fp and not candidate.exists():  # written on Windows: its separators, where the file is there that way
+    if regular_file(candidate, where, REPLACE_IMAGE):
+        return candidate
+    if "\\" in fp:  # written on Windows: its separators, where the file is there that way
         posix = scene / fp.replace("\\", "/")
-        if posix.exists():
+        if regular_file(posix, where, REPLACE_IMAGE):
             return posix.resolve()
-    if candidate.suffix == "" and not candidate.exists():  # Blender-style extensionless paths
+    if candidate.suffix == "":  # Blender-style extensionless paths
         for suffix in IMAGE_SUFFIXES + tuple(s.upper() for s in IMAGE_SUFFIXES):
-            if candidate.with_suffix(suffix).exists():
+            if regular_file(candidate.with_suffix(suffix), where, REPLACE_IMAGE):
                 return candidate.with_suffix(suffix)
     return candidate
 
@@ -409,7 +430,8 @@ class LowLightDataParser(DataParser):
 
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
         scene = self.config.data
-        if not scene.is_dir():
+        found = input_stat(scene, "--data")
+        if found is None or not stat.S_ISDIR(found.st_mode):
             raise LowLightDataError(
                 f"{scene}: scene folder not found -- pass --data <folder with transforms_train.json>"
             )
@@ -505,7 +527,7 @@ def _image_size(path: Path) -> Tuple[int, int]:
     """``(width, height)`` from the header; files PIL cannot open (float32 RGB TIFFs, which the reader
     supports) are decoded in full, and an unreadable file raises the reader's one-line reason."""
     try:
-        with Image.open(path) as im:
+        with open_regular(path, fix=REPLACE_IMAGE) as stream, Image.open(stream) as im:
             return im.size
     except OSError:
         arr = read_raw(path)

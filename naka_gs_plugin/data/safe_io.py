@@ -12,25 +12,30 @@
   it is removed when the process exits.
 * Ctrl-C or SIGTERM while a staged output is built removes it, says so in one line (``naka-gs: Ctrl-C: stopped;
   ...`` on stderr) and exits 130 / 143 (:class:`RemovedOnStop`), even in the middle of a long native call.
+* Every input file is read only when it is a regular file (:func:`regular_file`, :func:`open_regular`,
+  :func:`read_regular`): a FIFO, a device or a socket (``file_path: /dev/zero``) is refused in one line before it is
+  opened, so a read never blocks or runs forever; so is a path longer than the system allows.
+
+Imports without nerfstudio (the image reader uses it on the GPU machine): its console is imported where it logs.
 """
 
 from __future__ import annotations
 
 import atexit
 import contextlib
+import errno
 import json
 import os
 import secrets
 import shutil
 import signal
+import stat
 import sys
 import tempfile
 import threading
 import time
 from pathlib import Path
-from typing import Callable, Dict, Iterable, Iterator, List, NamedTuple, Optional
-
-from nerfstudio.utils.rich_utils import CONSOLE
+from typing import BinaryIO, Callable, Dict, Iterable, Iterator, List, NamedTuple, Optional, Union
 
 from naka_gs_plugin.errors import UserError, signal_exit_status
 
@@ -91,7 +96,7 @@ def check_not_input(out: Path, inputs: Iterable[Path], option: str) -> None:
 def written_files(folder: Path) -> Optional[List[str]]:
     """Files our marker in ``folder`` lists (relative paths), or None when there is no valid marker."""
     try:
-        meta = json.loads((folder / MARKER).read_text())
+        meta = json.loads(read_regular(folder / MARKER))  # a FIFO there: no marker, never waited on
         files = meta["files"]
     except (OSError, ValueError, KeyError, TypeError):
         return None
@@ -384,9 +389,122 @@ def usable_cache_dir(preferred: Path) -> Path:
         fallback = Path(tempfile.mkdtemp(prefix="naka-gs-cache-"))
         _fallback[preferred] = fallback
         atexit.register(_remove_fallback, fallback, os.getpid())
+        from nerfstudio.utils.rich_utils import CONSOLE  # here: this module imports without nerfstudio
+
         CONSOLE.log(
             f"[naka-gs] warning: cache {preferred} is not writable ({err.strerror or err}); using {fallback} for "
             "this run -- set NAKA_GS_CACHE to a writable folder to keep the cache between runs",
             markup=False,
         )
         return fallback
+
+
+# --- inputs: regular files only ----------------------------------------------------------------------------------
+
+PathLike = Union[str, "os.PathLike[str]"]
+
+SHOWN_PATH_CHARS = 60
+"""How much of a path too long for the system a message shows (the start: where it is)."""
+MESSAGE_PATH_CHARS = 255
+"""Longest path a message shows whole (a file name may be this long); a longer one is shortened (:func:`shown_path`)."""
+
+_NONBLOCK = getattr(os, "O_NONBLOCK", 0)
+"""Opening a FIFO with it returns at once (POSIX); the flag does nothing to a regular file."""
+
+_KINDS = (
+    (stat.S_ISDIR, "a folder"),
+    (stat.S_ISFIFO, "a FIFO (named pipe)"),
+    (stat.S_ISCHR, "a character device"),
+    (stat.S_ISBLK, "a block device"),
+    (stat.S_ISSOCK, "a socket"),
+)
+
+
+class InputFileError(UserError, ValueError):
+    """An input that is not a regular file (a FIFO, a device, a socket, a folder), or a path longer than the system
+    allows; one line ``[<what>: ]<path> <problem> -- <fix>``. ``problem`` alone (``is a FIFO (named pipe), not a
+    regular file``) is kept for callers that report it their own way (the cache recomputes such an entry)."""
+
+    def __init__(self, message: str, problem: str) -> None:
+        super().__init__(message)
+        self.problem = problem
+
+
+def shown_path(path: PathLike, limit: int = MESSAGE_PATH_CHARS) -> str:
+    """``path`` for a one-line message: whole up to ``limit`` characters, else its first :data:`SHOWN_PATH_CHARS`
+    characters (where it is) and its length."""
+    text = os.fspath(path)
+    return text if len(text) <= limit else f"{text[:SHOWN_PATH_CHARS]}... ({len(text)} characters)"
+
+
+def _refuse(path: PathLike, what: str, problem: str, fix: str, limit: int = MESSAGE_PATH_CHARS) -> InputFileError:
+    """``[<what>: ]<path> <problem> -- <fix>``; a ``problem`` starting with ``:`` follows the path directly."""
+    where = f"{what}: " if what else ""
+    space = "" if problem.startswith(":") else " "
+    return InputFileError(f"{where}{shown_path(path, limit)}{space}{problem} -- {fix}", problem.lstrip(": "))
+
+
+def input_stat(path: PathLike, what: str = "") -> Optional[os.stat_result]:
+    """``os.stat`` of an input (links followed), which opens nothing: None when it is missing (or a part of its path is
+    a file); a path longer than the system allows, or a link loop, is an :class:`InputFileError` (``what`` names the
+    input: ``"--data"``, ``"<json>: frame 3 file_path <name>"``). Any other ``OSError`` is raised as it is."""
+    try:
+        return os.stat(path)
+    except (FileNotFoundError, NotADirectoryError):
+        return None
+    except OSError as err:
+        if err.errno == errno.ENAMETOOLONG:
+            raise _refuse(
+                path,
+                what,
+                ": the path, or a name in it, is longer than the system allows",
+                "use a shorter path (move the files to a folder nearer the root, or shorten their names)",
+                limit=SHOWN_PATH_CHARS,
+            ) from None
+        if err.errno == errno.ELOOP:
+            raise _refuse(
+                path, what, "is a symbolic link that leads back to itself (a link loop)", "fix or replace the link"
+            ) from None
+        raise
+
+
+def regular_file(path: PathLike, what: str = "", fix: str = "replace it with the file itself") -> bool:
+    """Whether the input ``path`` is there: True for a regular file (links followed), False when it is missing; a FIFO,
+    a device, a socket or a folder is an :class:`InputFileError` naming it and ``fix``, and so is a path too long
+    (:func:`input_stat`). Nothing is opened, so nothing blocks: call it before every read of a user's file (opening a
+    FIFO waits for a writer; ``/dev/zero`` never ends)."""
+    st = input_stat(path, what)
+    if st is None:
+        return False
+    _check_mode(st.st_mode, path, what, fix)
+    return True
+
+
+def _check_mode(mode: int, path: PathLike, what: str, fix: str) -> None:
+    if stat.S_ISREG(mode):
+        return
+    kind = next((name for test, name in _KINDS if test(mode)), "a special file")
+    raise _refuse(path, what, f"is {kind}, not a regular file", fix)
+
+
+def open_regular(path: PathLike, what: str = "", fix: str = "replace it with the file itself") -> BinaryIO:
+    """The input ``path`` opened for reading in binary, checked a regular file before it is opened
+    (:func:`regular_file`) and again on the open descriptor (it may have been replaced between the two): opened with
+    ``O_NONBLOCK``, so a FIFO put there meanwhile does not block the open either. A missing file raises
+    ``FileNotFoundError``, other failures their ``OSError``."""
+    regular_file(path, what, fix)
+    fd = os.open(path, os.O_RDONLY | _NONBLOCK | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_BINARY", 0))
+    try:
+        _check_mode(os.fstat(fd).st_mode, path, what, fix)
+        if _NONBLOCK:
+            os.set_blocking(fd, True)  # no effect on a regular file's reads; as an ordinary open leaves it
+        return os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
+
+
+def read_regular(path: PathLike, what: str = "", fix: str = "replace it with the file itself") -> bytes:
+    """The bytes of the input ``path``, read only when it is a regular file (:func:`open_regular`)."""
+    with open_regular(path, what, fix) as stream:
+        return stream.read()

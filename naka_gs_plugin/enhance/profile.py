@@ -10,16 +10,23 @@ capture chroma and capture tone) onto the camera's normal-light rendering of the
 It is fitted robustly (a Huber loss in sRGB: squared errors, as PSNR weighs them, up to :data:`HUBER_DELTA`; what a
 pair does not share beyond it, a moved object or a lamp, pulls no harder) on area-downscaled pairs, in seconds, by :func:`fit_profile`; :func:`apply_profile` is the view stage's maths. A profile is a small JSON file
 (``naka-gs-calibrate`` writes it) that also records the chain it was fitted after and the pairs' exposure ratios.
+
+A profile is checked as a photo is (:meth:`CameraProfile.load`, then :func:`check_view` on each view it renders): a
+file that is too large or too deeply nested is refused before it is parsed, and maps that would make the views black,
+white, flat or tone-inverted are refused with one line naming the check and the fix (the bounds below, each with
+what ``naka-gs-calibrate`` writes against it).
 """
 
 from __future__ import annotations
 
 import json
 import math
+import re
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Dict, List, Sequence
+from typing import Any, Dict, List, Optional, Sequence
 
+import numpy as np
 import torch
 from jaxtyping import Float
 from torch import Tensor
@@ -40,8 +47,155 @@ HUBER_DELTA = 0.1
 """Residuals beyond this (sRGB, 25 codes) count linearly in the fit."""
 
 
+MAX_BYTES = 1 << 20
+"""Largest profile file read (1 MiB): the profiles naka-gs-calibrate wrote from RealX3D, LOL and LOM pairs are
+4.4-8.1 KB (17 knots x 3 curves, a 3x3 matrix, the chain's keys, about 200 bytes per pair: 5000 pairs would still
+fit). Anything larger is not a profile; no more of it is read."""
+MAX_DEPTH = 16
+"""Deepest bracket nesting read (objects and arrays): a calibrated profile nests 4-5 deep (the chain's stage keys, a
+pair's shift); checked on the bytes before ``json`` parses them, whose recursive parser ends in a ``RecursionError``
+near 1000 levels."""
+CURVE_MAX = 16.0
+"""Largest curve value (linear light, 1 = white): 4 stops above white, where every pixel is clipped to white after
+the matrix. Calibrated curves reach 0.76-1.41."""
+MIN_RISE = 0.01
+"""Least rise of each curve from its first knot to its last (linear light; from black, about 25 sRGB codes): a
+curve rising less renders the views flat in that channel (an all-zero curve rises 0). Calibrated curves rise
+0.55-0.72."""
+FALL_TOLERANCE = 1e-6
+"""A curve's knots never fall by more than this (linear light): the fit builds them rising (cumulative softplus
+steps); this only forgives a hand edit's rounding. A falling curve inverts the tones."""
+MATRIX_MAX = 8.0
+"""Largest colour-matrix entry, in magnitude (1e30 clips every view to black or white). Calibrated matrices reach
+1.77 (1.18 away from the identity)."""
+CONDITION_MAX = 100.0
+"""Largest condition number (2-norm) of the colour matrix: how much more it amplifies one colour direction than
+another, noise included; a nearly singular matrix collapses the colours onto a plane. Calibrated matrices: 1.3-5.6
+(determinants 0.49-1.98; one of ``-1``, as ``-I``'s, inverts the colours: the determinant must be > 0)."""
+RAMP_MIN_SPAN = 0.05
+"""Least rise (sRGB, about 13 codes) of each output channel from black to white over a grey ramp, through the curves
+and the matrix together (rising curves and a matrix of determinant > 0 can still zero a channel or turn it down:
+``diag(-1, -1, 1)``). Calibrated profiles rise 0.71-0.98."""
+RAMP_MAX_FALL = 0.25
+"""Largest fall (sRGB, a quarter of the range) of an output channel along that ramp, below its highest value so far:
+a profile that tone-inverts the highlights. Not 0: a calibrated matrix mixes channels and grey near white is rare in
+the pairs, so a channel may dip there (BlueHawaii's red falls 0.056-0.075 over the last 5 % of the ramp)."""
+VIEW_FLAT_RANGE = 0.25 / 255.0
+"""Least contrast (0.1-99.9 % pixel range, sRGB [0, 1]) of a view the profile rendered: a quarter of an 8-bit level,
+the bound the photos themselves are held to (``naka_gs_plugin.datamanager.FLAT_RANGE``)."""
+VIEW_MIN_INPUT_RANGE = 1.0 / 255.0
+"""A view is blamed on the profile only when its input to the profile spans at least one 8-bit level: a flat
+photo is the photo's check's to report."""
+
+
 class CameraProfileError(UserError, ValueError):
     """A profile file that cannot be used (missing, not a profile, damaged); the message names it and the fix."""
+
+
+class UnusableProfileError(CameraProfileError):
+    """A camera profile (its ``format`` says so) whose curves or matrix would render the views black, white, flat or
+    tone-inverted (:func:`check_maps`, :func:`check_view`): calibrating again replaces it (:func:`is_profile_file`)."""
+
+
+def _number(value: Any) -> bool:
+    """A JSON number: an int or a float, not a bool (``true`` is a Python ``bool``, a subclass of ``int``)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _describe(value: Any) -> str:
+    """``value`` as its JSON reads (``true``, ``NaN``, ``"text"``), shortened."""
+    if isinstance(value, float) and math.isfinite(value):
+        return f"{value:g}"
+    text = json.dumps(value, default=str)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _grid(value: Any, rows: int, cols: int, name: str) -> Optional[str]:
+    """What is wrong with ``value`` as ``rows`` lists of ``cols`` finite numbers, or None."""
+    if not (isinstance(value, list) and len(value) == rows and all(isinstance(r, list) for r in value)):
+        got = f"{len(value)} items" if isinstance(value, list) else f"a {type(value).__name__}"
+        return f"{name} must be {rows} lists of {cols} numbers, not {got}"
+    for i, row in enumerate(value):
+        if len(row) != cols:
+            return f"{name}[{i}] has {len(row)} numbers, not {cols}"
+        for j, v in enumerate(row):
+            if not _number(v):
+                return f"{name}[{i}][{j}] is {_describe(v)}, not a number"
+            try:
+                finite = math.isfinite(float(v))
+            except OverflowError:
+                finite = False
+            if not finite:
+                return (
+                    f"{name}[{i}][{j}] is {_describe(v) if isinstance(v, float) else 'too large'}, not a finite number"
+                )
+    return None
+
+
+def check_maps(curves: Any, matrix: Any) -> Optional[str]:
+    """What makes ``curves`` and ``matrix`` (as a profile's JSON holds them) unusable, in a few words, or None: the
+    shapes and types, finite values in range (:data:`CURVE_MAX`, :data:`MATRIX_MAX`), rising curves
+    (:data:`FALL_TOLERANCE`, :data:`MIN_RISE`), a matrix that neither inverts colours (determinant > 0) nor is
+    ill-conditioned (:data:`CONDITION_MAX`), and a grey ramp that comes out rising in every channel
+    (:data:`RAMP_MIN_SPAN`, :data:`RAMP_MAX_FALL`). Every profile ``naka-gs-calibrate`` wrote passes (the bounds'
+    notes give their values)."""
+    problem = _grid(curves, 3, KNOTS, "curves") or _grid(matrix, 3, 3, "matrix")
+    if problem:
+        return problem
+    for c, curve in enumerate(curves):
+        name = f"curves[{c}] ({'rgb'[c]})"
+        low, high = min(curve), max(curve)
+        if low < 0 or high > CURVE_MAX:
+            return f"{name} reaches {low if low < 0 else high:g}, outside 0-{CURVE_MAX:g} (linear light, 1 = white)"
+        fall = next((k for k in range(1, KNOTS) if curve[k] < curve[k - 1] - FALL_TOLERANCE), None)
+        if fall is not None:
+            return (
+                f"{name} falls from {curve[fall - 1]:g} to {curve[fall]:g} at knot {fall}: a profile's curves "
+                "rise (a falling one inverts the tones)"
+            )
+        if curve[-1] - curve[0] < MIN_RISE:
+            return (
+                f"{name} is flat ({curve[0]:g} to {curve[-1]:g}): a curve rises by at least {MIN_RISE:g} (linear light)"
+            )
+    m = torch.tensor(matrix, dtype=torch.float64)
+    big = float(m.abs().max())
+    if big > MATRIX_MAX:
+        return f"the colour matrix has an entry of magnitude {big:g}, beyond {MATRIX_MAX:g}"
+    det = float(torch.linalg.det(m))
+    if det <= 0:
+        return f"the colour matrix has determinant {det:g}: it inverts colours (a profile's matrix has determinant > 0)"
+    cond = float(torch.linalg.cond(m))
+    if not cond <= CONDITION_MAX:
+        return f"the colour matrix has condition number {cond:.3g}, beyond {CONDITION_MAX:g}: it is nearly singular"
+    ramp = torch.linspace(0, 1, 256, dtype=torch.float32)[:, None].expand(-1, 3)
+    out = apply_maps(ramp, torch.tensor(curves, dtype=torch.float32), m.float())
+    for c in range(3):
+        channel = out[:, c]
+        rise = float(channel[-1] - channel[0])
+        fall = float((torch.cummax(channel, 0).values - channel).max())
+        if rise < RAMP_MIN_SPAN or fall > RAMP_MAX_FALL:
+            why = (
+                f"falls by {fall:.3f} on the way, more than {RAMP_MAX_FALL:g}"
+                if rise >= RAMP_MIN_SPAN
+                else f"rises by less than {RAMP_MIN_SPAN:g}"
+            )
+            return (
+                f"a grey ramp from black to white comes out {'rgb'[c]} {float(channel[0]):.3f} to "
+                f"{float(channel[-1]):.3f} ({why}, sRGB): the curves and matrix together flatten or invert that channel"
+            )
+    return None
+
+
+_STRING = re.compile(rb'"(?:[^"\\]|\\.)*(?:"|\\?\Z)', re.DOTALL)
+"""A JSON string, or an unterminated one to the end of the text: matched in one pass, never retried from a later
+quote (linear time on any 1 MiB file)."""
+
+
+def nesting_depth(raw: bytes) -> int:
+    """The deepest bracket nesting (``[`` and ``{``) of JSON text, outside its strings, without parsing it."""
+    b = np.frombuffer(_STRING.sub(b"", raw), dtype=np.uint8)
+    step = np.isin(b, (ord("["), ord("{"))).astype(np.int64) - np.isin(b, (ord("]"), ord("}")))
+    return int(np.cumsum(step).max(initial=0))
 
 
 @dataclass
@@ -64,39 +218,79 @@ class CameraProfile:
 
     @classmethod
     def load(cls, path: Path, option: str = "--enhance.profile") -> "CameraProfile":
-        """Read ``path``; a missing or damaged file raises one line naming ``option`` and the fix."""
+        """Read ``path``; a missing, damaged or unusable file (see :func:`check_maps`) raises one line naming
+        ``option`` and the fix."""
         fix = f"pass {option} the .json file naka-gs-calibrate wrote, or leave {option} out"
-        try:
-            data = json.loads(Path(path).read_text(encoding="utf-8-sig"))
-        except FileNotFoundError:
-            raise CameraProfileError(f"{option} {path}: no such file -- {fix}") from None
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-            raise CameraProfileError(f"{option} {path}: not a camera profile ({err}) -- {fix}") from None
+        data = _read_json(Path(path), option, fix)
         if not isinstance(data, dict) or data.get("format") != PROFILE_FORMAT:
             raise CameraProfileError(f"{option} {path}: not a camera profile -- {fix}")
-        if data.get("version") != PROFILE_VERSION:
+        version = data.get("version")
+        if not (_number(version) and version == PROFILE_VERSION):
             raise CameraProfileError(
-                f"{option} {path}: profile version {data.get('version')}, this naka-gs reads {PROFILE_VERSION} -- "
+                f"{option} {path}: profile version {_describe(version)}, this naka-gs reads {PROFILE_VERSION} -- "
                 "calibrate again with this version (naka-gs-calibrate PAIRS --out PROFILE)"
             )
-        try:
-            profile = cls(
-                **{k: data[k] for k in ("curves", "matrix")},
-                **{k: data.get(k, {} if k != "pairs" else []) for k in ("chain", "pairs", "fit")},
-            )
-            curves, matrix = profile.tensors()
-        except (KeyError, TypeError, ValueError) as err:
-            raise CameraProfileError(f"{option} {path}: damaged camera profile ({err}) -- {fix}") from None
-        if (
-            curves.shape != (3, KNOTS)
-            or matrix.shape != (3, 3)
-            or not (curves.isfinite().all() and matrix.isfinite().all())
-        ):
-            raise CameraProfileError(f"{option} {path}: damaged camera profile (curves or matrix malformed) -- {fix}")
-        return profile
+        missing = [k for k in ("curves", "matrix") if k not in data]
+        if missing:
+            raise CameraProfileError(f"{option} {path}: damaged camera profile (no {' or '.join(missing)}) -- {fix}")
+        for key, kind in (("chain", dict), ("pairs", list), ("fit", dict)):
+            if not isinstance(data.get(key, kind()), kind):
+                raise CameraProfileError(
+                    f"{option} {path}: damaged camera profile ({key} is a {type(data[key]).__name__}, not a "
+                    f"{'list' if kind is list else 'mapping'}) -- {fix}"
+                )
+        problem = check_maps(data["curves"], data["matrix"])
+        if problem:
+            raise UnusableProfileError(f"{option} {path}: unusable camera profile: {problem} -- {_refit(option)}")
+        return cls(
+            curves=[[float(v) for v in row] for row in data["curves"]],
+            matrix=[[float(v) for v in row] for row in data["matrix"]],
+            **{k: data.get(k, {} if k != "pairs" else []) for k in ("chain", "pairs", "fit")},
+        )
 
     def tensors(self) -> tuple[Float[Tensor, "3 K"], Float[Tensor, "3 3"]]:
         return torch.tensor(self.curves, dtype=torch.float32), torch.tensor(self.matrix, dtype=torch.float32)
+
+
+def _refit(option: str) -> str:
+    """The fix of an unusable profile. A new file: ``naka-gs-calibrate --out`` replaces only a file it recognises."""
+    return f"calibrate again (naka-gs-calibrate PAIRS --out NEW.json), or leave {option} out"
+
+
+def _read_json(path: Path, option: str, fix: str) -> Any:
+    """``path``'s JSON, read only if it is at most :data:`MAX_BYTES` and nests at most :data:`MAX_DEPTH` deep;
+    otherwise, or when it is missing or not JSON, one line naming ``option`` and ``fix``."""
+    try:
+        with open(path, "rb") as f:
+            raw = f.read(MAX_BYTES + 1)
+    except FileNotFoundError:
+        raise CameraProfileError(f"{option} {path}: no such file -- {fix}") from None
+    except OSError as err:
+        raise CameraProfileError(f"{option} {path}: not a camera profile ({err}) -- {fix}") from None
+    if len(raw) > MAX_BYTES:
+        raise CameraProfileError(
+            f"{option} {path}: not a camera profile (larger than {MAX_BYTES >> 20} MiB; a profile is a few KB) -- {fix}"
+        )
+    depth = nesting_depth(raw)
+    if depth > MAX_DEPTH:
+        raise CameraProfileError(
+            f"{option} {path}: not a camera profile (brackets nested {depth} deep, more than {MAX_DEPTH}) -- {fix}"
+        )
+    try:
+        return json.loads(raw.decode("utf-8-sig"))
+    except (UnicodeDecodeError, ValueError, RecursionError) as err:  # ValueError: JSONDecodeError, huge ints
+        why = " ".join(str(err).split()) if not isinstance(err, RecursionError) else "nested too deep"
+        raise CameraProfileError(f"{option} {path}: not a camera profile ({why}) -- {fix}") from None
+
+
+def is_profile_file(path: Path) -> bool:
+    """Whether ``path`` is a camera profile by its ``format``, usable or not (:class:`UnusableProfileError`): a file
+    ``naka-gs-calibrate --out`` may replace."""
+    try:
+        data = _read_json(Path(path), "--out", "")
+    except CameraProfileError:
+        return False
+    return isinstance(data, dict) and data.get("format") == PROFILE_FORMAT
 
 
 def chain_key(stages: Sequence[Any]) -> Dict[str, Any]:
@@ -133,6 +327,32 @@ def apply_maps(
 def apply_profile(image: Float[Tensor, "H W 3"], profile: CameraProfile) -> Float[Tensor, "H W 3"]:
     """``image`` (sRGB [0, 1]) as the profile's camera renders it at normal light (sRGB [0, 1], float32)."""
     return apply_maps(image.float(), *profile.tensors())
+
+
+def _contrast(image: Float[Tensor, "H W 3"]) -> tuple[float, float]:
+    """The 0.1 and 99.9 % quantiles of ``image``'s values (every channel; on at most about 256x256 pixels), as
+    the photos' own check measures them."""
+    sample = image[:: max(1, image.shape[0] // 256), :: max(1, image.shape[1] // 256)].float().flatten().cpu()
+    lo, hi = torch.quantile(sample, torch.tensor([0.001, 0.999])).tolist()
+    return lo, hi
+
+
+def check_view(before: Float[Tensor, "H W 3"], after: Float[Tensor, "H W 3"], path: Path, option: str) -> None:
+    """Refuse, in one line naming the profile at ``path`` and the fix, a view the profile rendered all black, all
+    white or flat (:data:`VIEW_FLAT_RANGE`) from one with contrast (``before``, its input; a flat photo is left to
+    the photos' check)."""
+    lo, hi = _contrast(after)
+    if hi - lo >= VIEW_FLAT_RANGE:
+        return
+    lo_in, hi_in = _contrast(before)
+    if hi_in - lo_in < VIEW_MIN_INPUT_RANGE:
+        return
+    kind = "all black" if hi < 0.1 else "all white" if lo > 0.9 else "flat"
+    raise UnusableProfileError(
+        f"{option} {path}: the camera profile renders a view {kind} (its values span {lo:.4f}-{hi:.4f}; "
+        f"{lo_in:.4f}-{hi_in:.4f} before the profile) -- calibrate again with the --enhance options of this run "
+        f"(naka-gs-calibrate PAIRS --out NEW.json), or leave {option} out"
+    )
 
 
 def _area(image: Float[Tensor, "H W 3"], long_side: int) -> Float[Tensor, "h w 3"]:

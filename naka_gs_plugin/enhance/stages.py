@@ -28,7 +28,7 @@ from naka_gs_plugin.enhance.chroma import capture_chroma
 from naka_gs_plugin.enhance.correction import CorrectionRunner, file_digest, load_correction
 from naka_gs_plugin.enhance.exposure import apply_gain, lift_gain
 from naka_gs_plugin.enhance.naka import linear_stretch, naka_rushton, stretch_stats
-from naka_gs_plugin.enhance.profile import CameraProfile, apply_maps
+from naka_gs_plugin.enhance.profile import CameraProfile, apply_maps, check_view
 from naka_gs_plugin.enhance.tone import DEFAULT_BLUR as TONE_BLUR
 from naka_gs_plugin.enhance.tone import FLOOR_CODES as TONE_FLOOR
 from naka_gs_plugin.enhance.tone import capture_tone
@@ -247,7 +247,9 @@ class ProfileStage(ViewStage):
     def apply(self, image: Float[Tensor, "H W 3"], low: Float[Tensor, "H W 3"]) -> Float[Tensor, "H W 3"]:
         if self._maps is None:
             self._maps = self.profile().tensors()
-        return apply_maps(image.float(), *self._maps)
+        out = apply_maps(image.float(), *self._maps)
+        check_view(image, out, self.path, PROFILE_OPTION)  # a view it made black, white or flat: one line
+        return out
 
     def describe(self) -> str:
         return f"camera profile {self.path.name}"

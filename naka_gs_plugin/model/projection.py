@@ -4,7 +4,7 @@ This reproduces the math of gsplat 1.4.0's ``fully_fused_projection`` (pinhole c
 ``spherical_harmonics`` so that our CPU rasterizer sees exactly the screen-space Gaussians gsplat's
 CUDA path would. gsplat only ships these as CUDA kernels plus private ``_torch_impl`` helpers
 (meant for its tests, not a public API), so we keep our own copy here and cross-check it against
-those helpers in ``tests/test_rasterize.py``.
+those helpers in ``tests/model/test_rasterize.py``.
 
 Conventions (all as gsplat):
 

@@ -17,12 +17,17 @@ Supported inputs (``load_points``):
 - a VGGT output folder (``sparse/points.ply`` + ``sparse/{cameras,images,points3D}.bin``).
 
 :func:`find_scene_source` lists a lowlight-data scene's own point sources in ``auto`` order.
+
+Every file read must be a regular file: a FIFO, a device or a socket in a source's place (a PLY, a COLMAP model's
+files, ``points_cameras.json``) is refused in one line before it is opened
+(:func:`~naka_gs_plugin.data.safe_io.regular_file`), never found "missing" or waited on.
 """
 
 from __future__ import annotations
 
 import functools
 import json
+import stat
 import struct
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,7 +36,7 @@ from typing import Dict, List, Optional
 import numpy as np
 from jaxtyping import Float, UInt8
 
-from naka_gs_plugin.data.safe_io import atomic_write
+from naka_gs_plugin.data.safe_io import atomic_write, input_stat, open_regular, read_regular, regular_file
 from naka_gs_plugin.errors import UserError
 
 SCENE_SOURCES = ("sparse/0", "sparse", "colmap_sparse/0", "points.ply")
@@ -39,6 +44,13 @@ SCENE_SOURCES = ("sparse/0", "sparse", "colmap_sparse/0", "points.ply")
 folder layout, LOM's COLMAP model, the simulator's cloud."""
 
 CAMERAS_JSON = "points_cameras.json"
+
+COLMAP_FILES = tuple(
+    f"{name}{ext}" for name in ("cameras", "images", "points3D", "rigs", "frames") for ext in (".bin", ".txt")
+)
+"""The files of a COLMAP model pycolmap may read (``rigs`` and ``frames``: COLMAP 3.12 and later)."""
+REPLACE_PLY = "replace it with the PLY file"
+REPLACE_MODEL = "replace it with the COLMAP model file"
 
 
 class PointSourceError(UserError, ValueError):
@@ -100,29 +112,42 @@ def load_ply(path: Path, cameras: Optional[Dict[str, np.ndarray]] = None) -> Poi
     from plyfile import PlyData, PlyParseError
 
     path = Path(path)
-    if not path.is_file():
+    if not regular_file(path, fix=REPLACE_PLY):
         raise PointSourceError(f"{path}: PLY file not found -- check the path")
     try:
-        ply = PlyData.read(str(path))
+        with open_regular(path, fix=REPLACE_PLY) as stream:
+            ply = PlyData.read(stream)
         vertex = ply["vertex"]
-    except (PlyParseError, KeyError, ValueError, IndexError, EOFError) as err:
-        raise PointSourceError(
-            f"{path}: not a readable point-cloud PLY ({err.__class__.__name__}: {err}) -- "
-            "write a PLY with a 'vertex' element holding x, y, z"
-        ) from None
+    except (PlyParseError, KeyError, IndexError, EOFError) as err:
+        raise _not_a_ply(path, err) from None
+    except ValueError as err:  # InputFileError, a ValueError too, is the user's one line already
+        if isinstance(err, UserError):
+            raise
+        raise _not_a_ply(path, err) from None
     names = vertex.data.dtype.names or ()
     if not all(k in names for k in ("x", "y", "z")):
         raise PointSourceError(f"{path}: the PLY vertex element has no x, y, z properties (has {list(names)})")
     xyz = np.stack([np.asarray(vertex[k], dtype=np.float64) for k in ("x", "y", "z")], axis=1)
     if cameras is None:
-        cameras = read_cameras_json(path.parent / CAMERAS_JSON) if (path.parent / CAMERAS_JSON).is_file() else {}
+        side = path.parent / CAMERAS_JSON
+        cameras = (
+            read_cameras_json(side) if regular_file(side, fix="replace it with the json file, or remove it") else {}
+        )
     return _finite(xyz, _ply_colours(vertex, path), f"PLY {path}", cameras)
+
+
+def _not_a_ply(path: Path, err: BaseException) -> PointSourceError:
+    return PointSourceError(
+        f"{path}: not a readable point-cloud PLY ({err.__class__.__name__}: {err}) -- "
+        "write a PLY with a 'vertex' element holding x, y, z"
+    )
 
 
 def read_cameras_json(path: Path) -> Dict[str, np.ndarray]:
     """``{"image name": [x, y, z], ...}`` -> name -> centre (the simulator's ``points_cameras.json``)."""
+    raw = read_regular(path, fix="replace it with the json file, or remove it")
     try:
-        data = json.loads(Path(path).read_text(encoding="utf-8-sig"))
+        data = json.loads(raw.decode("utf-8-sig"))  # a UnicodeDecodeError is a ValueError
         cams = {str(k): np.asarray(v, dtype=np.float64).reshape(3) for k, v in data.items()}
     except (json.JSONDecodeError, AttributeError, TypeError, ValueError) as err:
         raise PointSourceError(
@@ -132,8 +157,13 @@ def read_cameras_json(path: Path) -> Dict[str, np.ndarray]:
 
 
 def is_colmap_model(folder: Path) -> bool:
-    """A folder with ``points3D`` and ``images`` in COLMAP's binary or text format."""
-    return any((folder / f"points3D{e}").is_file() and (folder / f"images{e}").is_file() for e in (".bin", ".txt"))
+    """A folder with ``points3D`` and ``images`` in COLMAP's binary or text format (one of them a FIFO, a device or
+    a socket: :class:`~naka_gs_plugin.data.safe_io.InputFileError`)."""
+    return any(
+        regular_file(folder / f"points3D{e}", fix=REPLACE_MODEL)
+        and regular_file(folder / f"images{e}", fix=REPLACE_MODEL)
+        for e in (".bin", ".txt")
+    )
 
 
 def colmap_camera_centres(folder: Path) -> Dict[str, np.ndarray]:
@@ -162,10 +192,12 @@ def _check_colmap_binary(folder: Path) -> None:
     pycolmap itself does not check: a truncated ``points3D.bin`` makes it allocate garbage sizes
     (``std::bad_alloc``), and an empty one keeps it busy for minutes.
     """
+    for name in COLMAP_FILES:  # before pycolmap opens any of them: regular files only
+        regular_file(folder / name, fix=REPLACE_MODEL)
     for name in ("cameras.bin", "images.bin", "points3D.bin"):
         path = folder / name
-        if path.is_file():
-            problem = _colmap_binary_problem(name, path.read_bytes())
+        if regular_file(path, fix=REPLACE_MODEL):
+            problem = _colmap_binary_problem(name, read_regular(path, fix=REPLACE_MODEL))
             if problem:
                 raise PointSourceError(
                     f"{path}: unreadable COLMAP model file, truncated or corrupt ({problem}) -- copy the model again, or re-run "
@@ -237,17 +269,20 @@ def load_colmap(folder: Path) -> PointCloud:
 def load_points(path: Path) -> PointCloud:
     """Load any supported source (see the module docstring) in its own frame."""
     path = Path(path)
-    if path.is_file():
+    found = input_stat(path)
+    if found is not None and not stat.S_ISDIR(found.st_mode):
+        regular_file(path, fix="replace it with the point file (.ply), or give a COLMAP model or VGGT folder")
         if path.suffix.lower() != ".ply":
             raise PointSourceError(f"{path}: unsupported point file (expected .ply, a COLMAP model or a VGGT folder)")
         return load_ply(path)
-    if not path.is_dir():
+    if found is None:
         raise PointSourceError(
             f"{path}: not found -- give a .ply, a COLMAP sparse model folder or a VGGT output folder"
         )
     for model in (path, path / "sparse"):
         if is_colmap_model(model):
-            if (model / "points.ply").is_file():  # VGGT: points.ply == points3D.bin, much faster to read
+            # VGGT: points.ply == points3D.bin, much faster to read
+            if regular_file(model / "points.ply", fix=REPLACE_PLY):
                 cloud = load_ply(model / "points.ply", cameras=colmap_camera_centres(model))
                 cloud.source = f"VGGT output {model} (points.ply + images)"
                 return cloud
@@ -262,7 +297,9 @@ def find_scene_source(scene: Path) -> Optional[Path]:
     """The first of :data:`SCENE_SOURCES` present in ``scene`` (None if the scene has no points)."""
     for rel in SCENE_SOURCES:
         cand = Path(scene) / rel
-        if (cand.is_file() and cand.suffix == ".ply") or (cand.is_dir() and is_colmap_model(cand)):
+        if cand.suffix == ".ply" and regular_file(cand, fix=REPLACE_PLY):  # a FIFO there: one line, not skipped
+            return cand
+        if cand.is_dir() and is_colmap_model(cand):
             return cand
     return None
 

@@ -12,6 +12,7 @@ import json
 import os
 import secrets
 import socket
+import stat
 import time
 from pathlib import Path
 from typing import Optional, Sequence, Set
@@ -25,10 +26,28 @@ _LIVE_CLAIMS: Set[str] = set()
 """Tokens of the claims this process holds (a claim copied along with a run folder is not one of them)."""
 
 
-def _claim_holder(claim: Path) -> Optional[dict]:
-    """The claim's record, or None when it is not one (unreadable, or cut short by a crash mid-write)."""
+KINDS = {stat.S_IFDIR: "a folder", stat.S_IFIFO: "a FIFO", stat.S_IFSOCK: "a socket", stat.S_IFCHR: "a device",
+         stat.S_IFBLK: "a device", stat.S_IFLNK: "a symbolic link"}  # fmt: skip
+
+
+def _not_a_claim_file(claim: Path) -> Optional[str]:
+    """What ``claim`` is when it exists and is not a regular file (we only ever write regular files), else None."""
     try:
-        record = json.loads(claim.read_text(encoding="utf-8"))
+        mode = os.lstat(claim).st_mode
+    except OSError:
+        return None
+    return None if stat.S_ISREG(mode) else KINDS.get(stat.S_IFMT(mode), "not a regular file")
+
+
+def _claim_holder(claim: Path) -> Optional[dict]:
+    """The claim's record, or None when it is not one (unreadable, or cut short by a crash mid-write). Opened
+    without blocking and read only as a regular file: a FIFO in its place would block the training forever."""
+    try:
+        fd = os.open(claim, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOFOLLOW", 0))
+        with os.fdopen(fd, "rb") as fh:
+            if not stat.S_ISREG(os.fstat(fh.fileno()).st_mode):
+                return None
+            record = json.loads(fh.read(1 << 16).decode("utf-8"))
     except (OSError, ValueError):
         return None
     return record if isinstance(record, dict) else None
@@ -84,6 +103,12 @@ def claim_run_folder(run: Path) -> str:
         try:
             _publish_exclusive(claim, json.dumps(record))
         except FileExistsError:
+            kind = _not_a_claim_file(claim)
+            if kind is not None:
+                raise SystemExit(
+                    f"naka-gs: {claim} is {kind}, not a run claim (naka-gs only ever writes a small file there) -- "
+                    "move it out of the run folder, or pick another --timestamp or --output-dir"
+                ) from None
             held = _claim_holder(claim)
             if _claim_is_live(held):
                 pid, host = held.get("pid"), held.get("host")  # type: ignore[union-attr]

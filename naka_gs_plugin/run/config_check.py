@@ -12,6 +12,11 @@ our code runs. ns-train's ``--load-config`` file is checked before it is read
 (:meth:`~naka_gs_plugin.trainer.NakaGSTrainerConfig.__post_init__`, :func:`check_config_file`); the commands that
 load a run read it in ``eval_setup``, whose errors :mod:`naka_gs_plugin.run.nerfstudio_hooks` turns into these lines.
 
+A config.yml is data: people share run folders, and ``yaml.Loader`` runs whatever a ``!!python/object/apply`` tag
+names while it reads the file. :func:`refuse_code_in_config` reads the file's node tree first (composing runs
+nothing) and lets through only the tags a run's config holds (:func:`allowed_tag`); anything else is one line naming
+the tag, the file and its line, before nerfstudio or we construct anything from it.
+
 The presets register themselves (:func:`register_presets`) so that a message can name an option's default without
 this module importing them: they are the roof of the package, this module a floor below.
 """
@@ -20,7 +25,11 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import enum
 import functools
+import importlib
+import os
+import stat
 import types
 import typing
 from pathlib import Path, PurePath
@@ -236,15 +245,109 @@ def unreadable_line(path: Path, err: Exception) -> str:
     return f"naka-gs: {path}: cannot read it ({why}) -- pass the config.yml ns-train wrote in a run folder"
 
 
-def check_config_file(path: Path) -> None:
-    """Exit with one line (status 1) when ``path`` cannot be read, is not YAML, not a run's configuration, or holds
-    a problem of :func:`run_config_problem`; ``ns-train --load-config`` is checked so before it reads the file."""
+STANDARD_TAGS = frozenset(
+    f"tag:yaml.org,2002:{name}"
+    for name in ("str", "int", "float", "bool", "null", "map", "seq", "timestamp", "python/tuple")
+)
+"""YAML's standard scalars and collections, and the tuples nerfstudio's configs hold."""
+TRUSTED_MODULES = ("nerfstudio.", "naka_gs_plugin.", "torch.optim.")
+"""The packages whose classes a run's config.yml may name (configs, their ``_target`` classes, optimizers)."""
+PATH_CLASSES = ("pathlib.Path", "pathlib.PosixPath", "pathlib.WindowsPath", "pathlib.PurePosixPath")
+PYTHON_TAG = "tag:yaml.org,2002:python/"
+
+
+def _trusted_class(dotted: str) -> Optional[type]:
+    """The class ``dotted`` names when it lives in one of :data:`TRUSTED_MODULES`, else None (nothing outside them
+    is imported)."""
+    module, _, name = dotted.rpartition(".")
+    if not module or not (module + ".").startswith(TRUSTED_MODULES):
+        return None
     try:
-        text = Path(path).read_text()
+        found = getattr(importlib.import_module(module), name)
+    except (ImportError, AttributeError):
+        return None
+    return found if isinstance(found, type) else None
+
+
+def allowed_tag(tag: str) -> bool:
+    """Whether a config.yml may hold ``tag``: a standard one; a path (``!!python/object/apply:pathlib.PosixPath``);
+    a dataclass of nerfstudio or ours (``!!python/object:``, built without calling it); an enum of those
+    (``!!python/object/apply:``, nerfstudio's writer events); a class of those, or a torch optimizer
+    (``!!python/name:``, the ``_target`` of a config)."""
+    if tag in STANDARD_TAGS:
+        return True
+    if not tag.startswith(PYTHON_TAG):
+        return False
+    kind, _, dotted = tag[len(PYTHON_TAG) :].partition(":")
+    if kind == "object/apply" and dotted in PATH_CLASSES:
+        return True
+    cls = _trusted_class(dotted) if kind in ("object", "object/apply", "name") else None
+    if cls is None:
+        return False
+    if kind == "object":
+        return dataclasses.is_dataclass(cls)
+    if kind == "object/apply":
+        return issubclass(cls, enum.Enum)
+    return True
+
+
+def _nodes(node: yaml.Node) -> Iterator[yaml.Node]:
+    stack, seen = [node], set()
+    while stack:
+        node = stack.pop()
+        if id(node) in seen:  # an alias shares its node
+            continue
+        seen.add(id(node))
+        yield node
+        if isinstance(node, yaml.MappingNode):
+            stack.extend(part for pair in node.value for part in pair)
+        elif isinstance(node, yaml.SequenceNode):
+            stack.extend(node.value)
+
+
+def refuse_code_in_config(path: Path, text: str) -> None:
+    """Exit with one line (status 1) when ``text``, the config.yml at ``path``, holds a tag a run's config does not
+    (:func:`allowed_tag`), naming the tag and its line; nothing in the file is constructed or run. YAML it cannot
+    read is left to the caller's error line."""
+    try:
+        root = yaml.compose(text, Loader=yaml.SafeLoader)
+    except yaml.YAMLError:
+        return
+    for node in _nodes(root) if root is not None else ():
+        if not allowed_tag(node.tag):
+            tag = (
+                "!!" + node.tag[len("tag:yaml.org,2002:") :] if node.tag.startswith("tag:yaml.org,2002:") else node.tag
+            )
+            raise SystemExit(
+                f"naka-gs: {path}: line {node.start_mark.line + 1} holds the tag {tag}, which a run's config.yml "
+                "never holds (it would run code while the file is read); nothing was run -- delete that entry, or "
+                "restore the config.yml ns-train wrote"
+            )
+
+
+def read_regular_text(path: Path, limit: int = 64 << 20) -> str:
+    """The text of ``path`` when it is a regular file (a FIFO or device would block or never end), at most ``limit``
+    bytes; raises OSError / UnicodeDecodeError as ``read_text`` does."""
+    with open(path, "rb", opener=lambda p, flags: os.open(p, flags | os.O_NONBLOCK)) as fh:
+        if not stat.S_ISREG(os.fstat(fh.fileno()).st_mode):
+            raise OSError(0, "not a regular file", str(path))
+        data = fh.read(limit + 1)
+    if len(data) > limit:
+        raise OSError(0, f"over {limit >> 20} MB, not a run's config.yml", str(path))
+    return data.decode()
+
+
+def check_config_file(path: Path) -> None:
+    """Exit with one line (status 1) when ``path`` cannot be read, holds code (:func:`refuse_code_in_config`), is not
+    YAML, not a run's configuration, or holds a problem of :func:`run_config_problem`; ``ns-train --load-config`` is
+    checked so before it reads the file."""
+    try:
+        text = read_regular_text(Path(path))
     except (OSError, UnicodeDecodeError) as err:
         raise SystemExit(unreadable_line(path, err)) from None
+    refuse_code_in_config(path, text)
     try:
-        loaded = yaml.load(text, Loader=yaml.Loader)
+        loaded = yaml.load(text, Loader=yaml.Loader)  # only the tags refuse_code_in_config allows are left
     except yaml.YAMLError as err:
         raise SystemExit(yaml_error_line(path, err)) from None
     line = config_file_problem(path, text, loaded) or run_config_problem(loaded, path)

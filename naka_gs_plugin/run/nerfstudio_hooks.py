@@ -40,7 +40,13 @@ import yaml
 
 from naka_gs_plugin.data.safe_io import UnsafeOutputError, check_new_files
 from naka_gs_plugin.errors import user_error_exit
-from naka_gs_plugin.run.config_check import config_file_problem, unreadable_line, yaml_error_line
+from naka_gs_plugin.run.config_check import (
+    config_file_problem,
+    read_regular_text,
+    refuse_code_in_config,
+    unreadable_line,
+    yaml_error_line,
+)
 
 UPSTREAM_SHA256: Dict[str, str] = {
     # eval_setup asks the config for its checkpoint folder with the file's path in its local ``config_path``, then
@@ -152,12 +158,20 @@ def is_naka_gs_run_config(path: Path) -> bool:
 
 
 def activate_for_command(argv: Optional[Sequence[str]] = None) -> None:
-    """At the plugin's import (every ``ns-*`` command imports it): activate the hooks when the command line loads a
-    naka-gs run's config.yml, so that one that is not YAML, empty or unreadable ends in one line. Any other command
-    (``ns-train splatfacto``, ``ns-eval`` of another method's run) is left exactly as it is without us."""
+    """At the plugin's import (every ``ns-*`` command imports it, before it parses its options): when the command
+    line loads a naka-gs run's config.yml, activate the hooks (so that one that is not YAML, empty or unreadable
+    ends in one line) and refuse a file that would run code when eval_setup reads it with ``yaml.Loader``
+    (:func:`~naka_gs_plugin.run.config_check.refuse_code_in_config`). Any other command (``ns-train splatfacto``,
+    ``ns-eval`` of another method's run) is left exactly as it is without us."""
     path = loaded_config_path(sys.argv if argv is None else argv)
-    if path is not None and is_naka_gs_run_config(path):
-        activate()
+    if path is None or not is_naka_gs_run_config(path):
+        return
+    activate()
+    try:
+        text = read_regular_text(path)
+    except (OSError, UnicodeDecodeError) as err:
+        raise SystemExit(unreadable_line(path, err)) from None
+    refuse_code_in_config(path, text)
 
 
 # ---------------------------------------------------------------------------------------------- eval_setup frames

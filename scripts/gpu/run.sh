@@ -101,7 +101,7 @@ step_parity() {
 
 step_tests() {
   # --noconftest: tests/conftest.py imports the toy-scene writer (Pillow), which this file does not use.
-  "$PY" -m pytest -q -rs --noconftest -p no:cacheprovider --junitxml "$OUT/tests.xml" tests/test_cuda_parity.py
+  "$PY" -m pytest -q -rs --noconftest -p no:cacheprovider --junitxml "$OUT/tests.xml" tests/benchmarks/test_cuda_parity.py
 }
 
 step_timing() {

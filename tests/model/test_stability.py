@@ -284,7 +284,7 @@ def test_alignment_rejects_degenerate_cameras(cameras):
 # ------------------------------------------------------------------------------------ training
 def _black_scene(toy_scene: Path, tmp_path: Path) -> Path:
     """The toy scene with every training image but the first black: a scene whose images are all black is
-    refused as bad input (tests/test_bad_inputs.py), one with some black ones trains with a warning."""
+    refused as bad input (tests/faults/test_bad_inputs.py), one with some black ones trains with a warning."""
     scene = tmp_path / "black"
     shutil.copytree(toy_scene, scene)
     for path in sorted((scene / "train").iterdir())[1:]:

@@ -207,7 +207,7 @@ def _images(n=2, h=40, w=56):
 def test_enhancer_applies_the_correction_and_keys_the_cache(tmp_path):
     ckpt = save_correction(_net(SMALL), tmp_path / "net.pt")
     images = _images()
-    # The correction's output, then the capture's colour (tests/test_chroma.py).
+    # The correction's output, then the capture's colour (tests/enhance/test_chroma.py).
     naka_only = Enhancer(EnhanceConfig(correction="none")).enhance_images(images)
     corrected_enh = Enhancer(EnhanceConfig(correction=str(ckpt), correction_mode="exact"))
     corrected = corrected_enh.enhance_images(images)

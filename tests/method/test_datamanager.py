@@ -32,7 +32,7 @@ def _dm(scene, dtype="float32", **enhance):
 
 
 def test_train_images_are_naka_enhanced(toy_scene):
-    dm = _dm(toy_scene, correction="none")  # Naka alone; the correction net: tests/test_correction_infer.py
+    dm = _dm(toy_scene, correction="none")  # Naka alone; the correction net: tests/enhance/test_correction_infer.py
     for data, path in zip(dm.cached_train, dm.train_dataset.image_filenames):
         low = torch.from_numpy(read_rgb(path))
         want = capture_chroma(naka_enhance(low), low)  # the default colour: the capture's

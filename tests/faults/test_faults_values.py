@@ -1,10 +1,11 @@
 """Bad values as a user would pass them, one row per case: the one ``naka-gs:`` line and its exit status, or the
 result, and every file that existed before byte-identical after (issue 72: D2, S4, R).
 
-The pattern of tests/test_bad_inputs.py: each case builds its inputs under ``tmp`` (copies of the toy scene and
-of one trained run) and returns the action plus the paths that must not change. The commands run in-process
-through their console entry points (``ns-train``, ``ns-eval``, ``ns-export``: tyro parses the same arguments),
-and an exception nobody catches is handed to ``sys.excepthook`` as the interpreter would (:func:`uncaught`).
+The pattern of tests/faults/test_bad_inputs.py (tests/bad_inputs.py's case types and runner): each case builds its
+inputs under ``tmp`` (copies of the toy scene and of one trained run) and returns the action plus the paths that
+must not change. The commands run in-process through their console entry points (``ns-train``, ``ns-eval``,
+``ns-export``: tyro parses the same arguments), and an exception nobody catches is handed to ``sys.excepthook`` as
+the interpreter would (:func:`uncaught`).
 One slow test runs the real console scripts in subprocesses.
 """
 
@@ -15,9 +16,8 @@ import os
 import shutil
 import subprocess
 import sys
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Tuple
+from typing import Callable, List, Tuple
 
 import cv2
 import numpy as np
@@ -29,56 +29,13 @@ from nerfstudio.scripts import train as ns_train
 from nerfstudio.utils import eval_utils
 
 from naka_gs_plugin.config import METHODS
-from naka_gs_plugin.data.lowlight_dataparser import LowLightDataError, LowLightDataParserConfig
+from naka_gs_plugin.data.lowlight_dataparser import LowLightDataError
 from naka_gs_plugin.run.config_check import run_config_problem
 from naka_gs_plugin.sim.toy_scene import ToySceneConfig, write_toy_scene
+from tests.bad_inputs import Action, Case, Env, Exits, Ok, Raises, check_case, parse, snapshot
 from tests.helpers import tiny_run_config
 
 BIN = Path(sys.executable).parent
-Action = Callable[[], object]
-
-
-@dataclass
-class Raises:
-    exc: type
-    message: str
-
-
-@dataclass
-class Exits:
-    code: int
-    message: str
-    after: Optional[Callable[["Env"], None]] = None  # a further check once it has exited
-
-
-@dataclass
-class Ok:
-    check: Callable[["Env", object], None]
-
-
-@dataclass
-class Env:
-    tmp: Path
-    toy: Path
-    run: Path
-    monkeypatch: pytest.MonkeyPatch
-
-    def scene(self, name: str = "S", n_train: Optional[int] = None) -> Path:
-        """A private copy of the toy scene (8 training views), keeping only its first ``n_train`` views."""
-        scene = Path(shutil.copytree(self.toy, self.tmp / name))
-        if n_train is not None:
-            path = scene / "transforms_train.json"
-            meta = json.loads(path.read_text())
-            meta["frames"] = meta["frames"][:n_train]
-            path.write_text(json.dumps(meta))
-        return scene
-
-    def run_copy(self, name: str = "run", edit: Optional[Callable[[str], str]] = None) -> Path:
-        """A private copy of the trained run; ``edit`` rewrites its config.yml's text as a user would."""
-        run = Path(shutil.copytree(self.run, self.tmp / name))
-        if edit is not None:
-            (run / "config.yml").write_text(edit((run / "config.yml").read_text()))
-        return run
 
 
 @pytest.fixture(scope="module")
@@ -112,25 +69,6 @@ def uncaught(action: Action) -> object:
     except BaseException as exc:
         sys.excepthook(type(exc), exc, exc.__traceback__)
         raise SystemExit(1) from None
-
-
-def snapshot(paths: List[Path]) -> Dict[str, object]:
-    """Every file under ``paths`` (and each folder's listing) by path: bytes, a link's target, or None for a
-    folder."""
-    state: Dict[str, object] = {}
-    for root in paths:
-        items = [root] + (sorted(root.rglob("*")) if root.is_dir() else [])
-        for item in items:
-            if item.is_symlink():
-                state[str(item)] = ("link", os.readlink(item))
-            else:
-                state[str(item)] = None if item.is_dir() else item.read_bytes()
-    return state
-
-
-def parse(scene: Path, factor: int = 1) -> Action:
-    config = LowLightDataParserConfig(data=scene, downscale_factor=factor)
-    return lambda: config.setup().get_dataparser_outputs("train")
 
 
 def replace(old: str, new: str) -> Callable[[str], str]:
@@ -379,7 +317,7 @@ def export_with_a_bad_config_leaves_no_folder(env):
     return console(env, exporter.entrypoint, argv + ["--output-dir", str(env.tmp / "export")]), [run]
 
 
-CASES: List[Tuple[Callable[[Env], Tuple[Action, List[Path]]], object]] = [
+CASES: List[Case] = [
     (two_training_frames, Ok(_two_views_trained)),
     (one_pixel_scene, Exits(1, "image size w x h = 1 x 1 px is under the 8 x 8 minimum", _no_run_folder)),
     (downscale_below_minimum, Raises(LowLightDataError, "downscale-factor 8: makes the images' shorter side 6 px")),
@@ -419,29 +357,7 @@ CASES: List[Tuple[Callable[[Env], Tuple[Action, List[Path]]], object]] = [
 
 @pytest.mark.parametrize("make, expect", CASES, ids=[make.__name__ for make, _ in CASES])
 def test_bad_value(make, expect, toy_scene, trained, tmp_path, monkeypatch, capsys):
-    env = Env(tmp_path, toy_scene, trained, monkeypatch)
-    action, protected = make(env)
-    before = snapshot(protected)
-    capsys.readouterr()
-    if isinstance(expect, Raises):
-        with pytest.raises(expect.exc) as err:
-            action()
-        message = str(err.value)
-        assert expect.message in message and "\n" not in message, message
-    elif isinstance(expect, Exits):
-        with pytest.raises(SystemExit) as err:
-            action()
-        code = err.value.code
-        out, errors = capsys.readouterr()
-        assert "Traceback" not in out + errors, out + errors
-        printed = code if isinstance(code, str) else (out + errors).strip().splitlines()[-1]
-        assert (1 if isinstance(code, str) else code) == expect.code
-        assert printed.startswith("naka-gs: ") and expect.message in printed and "\n" not in printed, printed
-        if expect.after is not None:
-            expect.after(env)
-    else:
-        expect.check(env, action())
-    assert snapshot(protected) == before
+    check_case(Env(tmp_path, toy_scene, monkeypatch, capsys, run=trained), make, expect)
 
 
 @pytest.mark.slow  # ns-eval and ns-export subprocesses

@@ -9,7 +9,7 @@ import pytest
 from benchmarks.grid import Bench, BenchSpecError, load_grid, pareto, set_setting
 from naka_gs_plugin.shipped import CONFIGS
 
-GRIDS = Path(__file__).resolve().parents[1] / "benchmarks" / "configs"
+GRIDS = Path(__file__).resolve().parents[2] / "benchmarks" / "configs"
 
 
 def _grid(tmp_path: Path, scene: Path, families: str) -> Path:

@@ -23,17 +23,18 @@ import sys
 import textwrap
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import List, Optional
 
 import cv2
 import numpy as np
 import pytest
 
 from naka_gs_plugin.points.sources import write_ply
+from tests.bad_inputs import snapshot
+from tests.enhance.test_profile import _write_pairs
 from tests.helpers import write_spec
-from tests.test_profile import _write_pairs
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SCRIPTS = dict(
     re.findall(
         r'^(naka-gs-[\w-]+) = "([\w.:]+)"$',
@@ -240,7 +241,7 @@ def _rows(base: Path, toy: Path) -> List[Row]:
     }
     assert set(makers) == set(SCRIPTS), "a console script without rows here"
     rows = [row for command, make in makers.items() for row in rows_of(command, make)]
-    # SIGTERM, which the runner turns into Ctrl-C's clean-up (a staged output's is tests/test_faults_io.py's).
+    # SIGTERM, which the runner turns into Ctrl-C's clean-up (a staged output's is tests/faults/test_faults_io.py's).
     folder = base / "naka-gs-ppm-sigterm"
     folder.mkdir()
     hold = "naka_gs_plugin.scripts.ppm:prepare_points"
@@ -256,15 +257,6 @@ def _rows(base: Path, toy: Path) -> List[Row]:
 
 ROW_NAMES = [f"{command}-{kind}" for command in SCRIPTS for kind in ("missing", "unwritable", "ctrl_c")]
 ROW_NAMES.append("naka-gs-ppm-sigterm")
-
-
-def snapshot(paths: List[Path]) -> Dict[str, Optional[bytes]]:
-    """Every file and folder under ``paths`` (hidden ones included): bytes, or None for a folder."""
-    state: Dict[str, Optional[bytes]] = {}
-    for root in paths:
-        for item in [root, *sorted(root.rglob("*"))]:
-            state[str(item)] = None if item.is_dir() else item.read_bytes()
-    return state
 
 
 @pytest.fixture(scope="module")

@@ -3,7 +3,8 @@
 Each case builds its inputs under ``tmp`` (copies of the toy scene; nothing shared is modified)
 and returns the action plus the paths that must not change (files, or folders compared by their
 whole tree). Outcomes: ``Raises`` (exception type + message substring, one line), ``Exits`` (a
-console script's exit status + one-line message, the last line it prints) or ``Ok`` (a check of the result).
+console script's exit status + one-line message, the last line it prints) or ``Ok`` (a check of the result);
+the case types and the runner are tests/bad_inputs.py's, shared with the other tables of tests/faults/.
 """
 
 from __future__ import annotations
@@ -11,10 +12,8 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import sys
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Tuple
+from typing import Callable, Dict, List, Optional
 
 import cv2
 import numpy as np
@@ -31,60 +30,21 @@ from naka_gs_plugin.points.sources import PointSourceError
 from naka_gs_plugin.scripts import enhance as enhance_cli
 from naka_gs_plugin.scripts import sim as sim_cli
 from naka_gs_plugin.scripts.process_data import ProcessData, ProcessDataError
+from tests.bad_inputs import (
+    NAKA,
+    Action,
+    Case,
+    Env,
+    Exits,
+    Ok,
+    Raises,
+    check_case,
+    edit_frame0,
+    first_train_image,
+    parse,
+    run_console,
+)
 from tests.helpers import SHARED_DATA, write_spec
-
-NAKA = EnhanceConfig(correction="none")
-Action = Callable[[], object]
-
-
-@dataclass
-class Raises:
-    exc: type
-    message: str
-    after: Optional[Callable[["Env", None], None]] = None  # a further check once it has raised
-
-
-@dataclass
-class Exits:
-    code: int
-    message: str
-
-
-@dataclass
-class Ok:
-    check: Callable[["Env", object], None]
-
-
-@dataclass
-class Env:
-    tmp: Path
-    toy: Path
-    monkeypatch: pytest.MonkeyPatch
-    capsys: pytest.CaptureFixture
-
-    def scene(self, name: str = "S") -> Path:
-        """A private copy of the toy scene (PNG captures)."""
-        return Path(shutil.copytree(self.toy, self.tmp / name))
-
-    def jpeg_scene(self, name: str = "S") -> Path:
-        """The toy scene with its training captures as JPEGs (``train/*.jpg``)."""
-        scene = self.scene(name)
-        path = scene / "transforms_train.json"
-        meta = json.loads(path.read_text())
-        for frame in meta["frames"]:
-            png = scene / frame["file_path"]
-            cv2.imwrite(str(png.with_suffix(".jpg")), cv2.imread(str(png)), [cv2.IMWRITE_JPEG_QUALITY, 95])
-            png.unlink()
-            frame["file_path"] = str(Path(frame["file_path"]).with_suffix(".jpg"))
-        path.write_text(json.dumps(meta))
-        return scene
-
-    def log(self) -> str:
-        return " ".join(self.capsys.readouterr().out.split())
-
-
-def first_train_image(scene: Path) -> Path:
-    return scene / json.loads((scene / "transforms_train.json").read_text())["frames"][0]["file_path"]
 
 
 def truncate(path: Path, fraction: float = 1 / 3) -> Path:
@@ -98,18 +58,9 @@ def truncate(path: Path, fraction: float = 1 / 3) -> Path:
 
 def test_truncated_jpeg_is_the_silent_case_for_opencv(tmp_path, toy_scene):
     """The premise of the truncated-JPEG rows: OpenCV alone returns a full-size, partly grey image."""
-    env = Env(tmp_path, toy_scene, pytest.MonkeyPatch(), None)
+    env = Env(tmp_path, toy_scene, pytest.MonkeyPatch())
     path = truncate(first_train_image(env.jpeg_scene()))
     assert cv2.imread(str(path)).shape == (48, 64, 3)
-
-
-def edit_frame0(scene: Path, **values) -> Path:
-    """Set keys of the first training frame (``transform_matrix`` included) in transforms_train.json."""
-    path = scene / "transforms_train.json"
-    meta = json.loads(path.read_text())
-    meta["frames"][0].update(values)
-    path.write_text(json.dumps(meta))
-    return path
 
 
 def edit_frames(scene: Path, edit: Callable[[dict, dict], None]) -> Path:
@@ -124,11 +75,6 @@ def edit_frames(scene: Path, edit: Callable[[dict, dict], None]) -> Path:
 
 def pose0(scene: Path) -> np.ndarray:
     return np.array(json.loads((scene / "transforms_train.json").read_text())["frames"][0]["transform_matrix"])
-
-
-def parse(scene: Path, factor: int = 1) -> Action:
-    config = LowLightDataParserConfig(data=scene, downscale_factor=factor)
-    return lambda: config.setup().get_dataparser_outputs("train")
 
 
 def datamanager(scene: Path, dtype: str = "float32") -> Action:
@@ -170,14 +116,6 @@ def fake_process(env: Env, fail: bool = False) -> None:
 
     env.monkeypatch.setattr(ProcessData, "_process", process)
     env.monkeypatch.setattr(ProcessData, "_print", lambda self, report: None)
-
-
-def run_console(env: Env, entrypoint: Callable[[], None], argv: List[str]) -> Action:
-    def action():
-        env.monkeypatch.setattr(sys, "argv", argv)
-        entrypoint()
-
-    return action
 
 
 # --- the table -------------------------------------------------------------------------------------
@@ -598,6 +536,10 @@ def ppm_out_is_the_input(env):
     return run_console(env, ppm.entrypoint, ["naka-gs-ppm", str(ply), "--out", str(ply)]), [ply]
 
 
+BENCH = "[naka-gs bench] error: "
+"""How the benchmarks' error line starts."""
+
+
 def grid_console(env, text: str) -> Action:
     from benchmarks import grid
 
@@ -655,7 +597,7 @@ def cache_imwrite_fails(env):
     return parse(s, factor=2), [s]
 
 
-def _nothing_committed(env, _):
+def _nothing_committed(env):
     assert not [q for q in (env.tmp / "c").rglob("*") if q.is_file()]
 
 
@@ -839,7 +781,7 @@ def _finite_render(env, out):
     assert torch.isfinite(colors).all() and torch.isfinite(alphas).all()
 
 
-CASES: List[Tuple[Callable[[Env], Tuple[Action, List[Path]]], object]] = [
+CASES: List[Case] = [
     (pd_out_parent_of_input, Raises(ProcessDataError, "--output-dir")),
     (pd_out_equal_input, Raises(ProcessDataError, "is the input")),
     (pd_out_inside_input, Raises(ProcessDataError, "is inside the input")),
@@ -893,8 +835,11 @@ CASES: List[Tuple[Callable[[Env], Tuple[Action, List[Path]]], object]] = [
     (seed_ply_some_at_1e30, Ok(_far_dropped_with_warning)),
     (ppm_out_unwritable_console, Exits(1, "--out /proc/naka-gs.ply: cannot write it")),
     (ppm_out_is_the_input, Exits(1, "is an input of this run")),
-    (grid_malformed_yaml, Exits(2, "grid.yaml: malformed YAML (expected ',' or '}', but got '<scalar>' at line 3")),
-    (grid_every_run_failed, Exits(1, "all 2 runs failed (first toy/a: BenchSpecError:")),
+    (
+        grid_malformed_yaml,
+        Exits(2, "grid.yaml: malformed YAML (expected ',' or '}', but got '<scalar>' at line 3", prefix=BENCH),
+    ),
+    (grid_every_run_failed, Exits(1, "all 2 runs failed (first toy/a: BenchSpecError:", prefix=BENCH)),
     (correction_resume_garbage_console, Exits(1, "latest.pt is not a readable torch checkpoint (UnpicklingError)")),
     (cache_nested_writes_use_unique_temporaries, Ok(_last_writer_wins)),
     (cache_imwrite_fails, Raises(LowLightDataError, "cannot write the downscaled copy", _nothing_committed)),
@@ -917,38 +862,6 @@ CASES: List[Tuple[Callable[[Env], Tuple[Action, List[Path]]], object]] = [
 ]
 
 
-def snapshot(paths: List[Path]) -> Dict[str, Optional[bytes]]:
-    """Every file under ``paths`` (and each folder's listing) by path: bytes, or None for a folder."""
-    state: Dict[str, Optional[bytes]] = {}
-    for root in paths:
-        items = [root] + (sorted(root.rglob("*")) if root.is_dir() else [])
-        for item in items:
-            state[str(item)] = None if item.is_dir() else item.read_bytes()
-    return state
-
-
 @pytest.mark.parametrize("make, expect", CASES, ids=[make.__name__ for make, _ in CASES])
 def test_bad_input(make, expect, toy_scene, tmp_path, monkeypatch, capsys):
-    env = Env(tmp_path, toy_scene, monkeypatch, capsys)
-    action, protected = make(env)
-    before = snapshot(protected)
-    env.capsys.readouterr()
-    if isinstance(expect, Raises):
-        with pytest.raises(expect.exc) as err:
-            action()
-        message = str(err.value)
-        assert expect.message in message and "\n" not in message, message
-        if expect.after is not None:
-            expect.after(env, None)
-    elif isinstance(expect, Exits):
-        with pytest.raises(SystemExit) as err:
-            action()
-        code = err.value.code
-        out, errors = env.capsys.readouterr()
-        assert "Traceback" not in out + errors, out + errors
-        printed = code if isinstance(code, str) else out.strip().splitlines()[-1]  # after the run's own log lines
-        assert (1 if isinstance(code, str) else code) == expect.code
-        assert expect.message in printed and "\n" not in printed, printed
-    else:
-        expect.check(env, action())
-    assert snapshot(protected) == before
+    check_case(Env(tmp_path, toy_scene, monkeypatch, capsys), make, expect)

@@ -20,7 +20,7 @@ from naka_gs_plugin.sim.generate import build_scene, generate
 from naka_gs_plugin.sim.spec import Noise, SimSpecError, load_spec, shipped_specs
 from tests.helpers import TINY_VIEWS, write_spec
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 TINY = TINY_VIEWS
 U16 = 1.0 / 65535.0
 

@@ -28,9 +28,12 @@ from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.utils import writer
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
+from naka_gs_plugin.run import nerfstudio_hooks
 from naka_gs_plugin.run.checkpoints import PARTIAL_PREFIX, RESUME_STATE, checkpoint_step
 from naka_gs_plugin.trainer import INTERRUPTED_EXIT_CODE, LoggedStepsTensorboardWriter, NakaGSTrainer
 from tests.helpers import upstream_sha256
+
+nerfstudio_hooks.activate()  # the checkpoints here are read as inside a naka-gs run, where the hooks are on
 
 NS_TRAIN = Path(sys.executable).parent / "ns-train"
 STEPS_PER_SAVE = 1000  # far beyond where the test interrupts: any checkpoint is the Ctrl-C one
@@ -135,7 +138,7 @@ def test_upstream_trainer_methods_are_the_pinned_ones(name):
     digest = upstream_sha256(getattr(Trainer, name))
     assert digest == UPSTREAM_SHA256[name], (
         f"nerfstudio's Trainer.{name} changed (sha256 {digest}): re-check naka_gs_plugin/trainer.py against it, "
-        "then update UPSTREAM_SHA256 in tests/test_trainer_safety.py"
+        "then update UPSTREAM_SHA256 in tests/run/test_trainer_safety.py"
     )
 
 
@@ -455,8 +458,8 @@ def test_a_run_killed_and_resumed_ends_bit_identical_to_the_uninterrupted_run(to
         run.update(out=str(run["out"]), log=str(tmp_path / f"run{i}.log"))
     spec = tmp_path / "spec.json"
     spec.write_text(json.dumps({"scene": str(toy_scene), "runs": runs, "results": str(tmp_path / "results.json")}))
-    code = f"import sys; from tests.test_trainer_safety import _resume_driver; _resume_driver({str(spec)!r})"
-    env = dict(_env(), PYTHONPATH=os.pathsep.join([str(Path(__file__).parents[1]), os.environ.get("PYTHONPATH", "")]))
+    code = f"import sys; from tests.run.test_trainer_safety import _resume_driver; _resume_driver({str(spec)!r})"
+    env = dict(_env(), PYTHONPATH=os.pathsep.join([str(Path(__file__).parents[2]), os.environ.get("PYTHONPATH", "")]))
     res = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
                          stderr=subprocess.STDOUT, text=True, timeout=600)  # fmt: skip
     assert res.returncode == 0, res.stdout[-4000:]

@@ -1,9 +1,9 @@
 """Faults of files and processes (issue 72: D1, S3, X5, X6 and the smaller ones), one row per case.
 
-The table follows tests/test_bad_inputs.py (its ``Raises`` / ``Exits`` / ``Ok`` outcomes, its check that every
-protected input is byte-identical after). The stop rows (Ctrl-C, SIGTERM) run the command in a Python subprocess,
-send the signal once the command has reached the stage under test and check its exit status, its one line and that
-no unfinished output is left.
+The table follows tests/faults/test_bad_inputs.py (tests/bad_inputs.py's ``Raises`` / ``Exits`` / ``Ok`` outcomes,
+its check that every protected input is byte-identical after). The stop rows (Ctrl-C, SIGTERM) run the command in a
+Python subprocess, send the signal once the command has reached the stage under test and check its exit status, its
+one line and that no unfinished output is left.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import sys
 import textwrap
 import time
 from pathlib import Path
-from typing import Callable, List, Tuple
+from typing import List, Tuple
 
 import cv2
 import numpy as np
@@ -35,20 +35,21 @@ from naka_gs_plugin.run.claim import RUN_CLAIM
 from naka_gs_plugin.scripts import process_data
 from naka_gs_plugin.scripts import sim as sim_cli
 from naka_gs_plugin.trainer import NakaGSTrainerConfig
-from tests.helpers import TINY_VIEWS, write_spec
-from tests.test_bad_inputs import (
+from tests.bad_inputs import (
     NAKA,
-    Action,
+    Case,
     Env,
     Exits,
     Ok,
     Raises,
+    check_case,
     edit_frame0,
     first_train_image,
     parse,
     run_console,
     snapshot,
 )
+from tests.helpers import TINY_VIEWS, write_spec
 
 
 # --- D1: the run folder is claimed in one step -----------------------------------------------------
@@ -287,7 +288,7 @@ def _here(env: Env, name: str = "S") -> str:
     return str((env.tmp / name).resolve())
 
 
-CASES: List[Tuple[Callable[[Env], Tuple[Action, List[Path]]], Callable[[Env], object]]] = [
+CASES: List[Case] = [
     (
         run_folder_two_runs_at_once,
         lambda env: Raises(
@@ -353,29 +354,8 @@ CASES: List[Tuple[Callable[[Env], Tuple[Action, List[Path]]], Callable[[Env], ob
 
 @pytest.mark.parametrize("make, expect", CASES, ids=[make.__name__ for make, _ in CASES])
 def test_fault(make, expect, toy_scene, tmp_path, monkeypatch, capsys):
-    env = Env(tmp_path, toy_scene, monkeypatch, capsys)
-    action, protected = make(env)
-    expect = expect(env)
-    before = snapshot(protected)
-    env.capsys.readouterr()
     try:
-        if isinstance(expect, Raises):
-            with pytest.raises(expect.exc) as err:
-                action()
-            message = str(err.value)
-            assert expect.message in message and "\n" not in message, message
-        elif isinstance(expect, Exits):
-            with pytest.raises(SystemExit) as err:
-                action()
-            code = err.value.code
-            out, errors = env.capsys.readouterr()
-            assert "Traceback" not in out + errors, out + errors
-            printed = code if isinstance(code, str) else out.strip().splitlines()[-1]
-            assert (1 if isinstance(code, str) else code) == expect.code
-            assert expect.message in printed and "\n" not in printed, printed
-        else:
-            expect.check(env, action())
-        assert snapshot(protected) == before
+        check_case(Env(tmp_path, toy_scene, monkeypatch, capsys), make, expect)
     finally:
         _release_claims(tmp_path)
 
@@ -425,7 +405,7 @@ SIM = textwrap.dedent(
 
 def _stop_when(argv: List[str], marker: str, signum: int, cwd: Path) -> Tuple[int, str]:
     """Run ``python -c argv[0] argv[1:]``; send ``signum`` once a line holds ``marker``; the exit status and output."""
-    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]), TORCHDYNAMO_DISABLE="1")
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[2]), TORCHDYNAMO_DISABLE="1")
     child = subprocess.Popen(
         [sys.executable, "-c", *argv], cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
     )

@@ -186,7 +186,7 @@ def test_upstream_get_outputs_is_the_pinned_one():
     digest = upstream_sha256(SplatfactoModel.get_outputs)
     assert digest == SPLATFACTO_GET_OUTPUTS_SHA256, (
         f"nerfstudio's SplatfactoModel.get_outputs changed (sha256 {digest}): port the change into "
-        "NakaGSModel.get_outputs (naka_gs_plugin/model/naka_gs_model.py), then update the pin in tests/test_model.py"
+        "NakaGSModel.get_outputs (naka_gs_plugin/model/naka_gs_model.py), then update the pin in tests/model/test_model.py"
     )
 
 

@@ -16,7 +16,7 @@ from naka_gs_plugin.model.lpips import CONVS, SHIPPED, LazyLPIPS, load_lpips
 from tests.helpers import SHARED_REFERENCE
 
 PAIR = SHARED_REFERENCE / "lpips"
-CONVERTER = Path(__file__).resolve().parents[1] / "scripts" / "convert_lpips_weights.py"
+CONVERTER = Path(__file__).resolve().parents[2] / "scripts" / "convert_lpips_weights.py"
 
 
 def _image(name: str) -> torch.Tensor:
