@@ -305,6 +305,18 @@ def _nodes(node: yaml.Node) -> Iterator[yaml.Node]:
             stack.extend(node.value)
 
 
+class RunConfigLoader(yaml.Loader):
+    """nerfstudio's loader for a run's config.yml, constructing only the tags :func:`allowed_tag` lets through: a
+    file :func:`refuse_code_in_config` has not seen still builds nothing else."""
+
+    def construct_object(self, node: yaml.Node, deep: bool = False) -> Any:
+        if not allowed_tag(node.tag):
+            raise yaml.constructor.ConstructorError(
+                None, None, f"the tag {node.tag} is not one a run's config.yml holds", node.start_mark
+            )
+        return super().construct_object(node, deep)
+
+
 def refuse_code_in_config(path: Path, text: str) -> None:
     """Exit with one line (status 1) when ``text``, the config.yml at ``path``, holds a tag a run's config does not
     (:func:`allowed_tag`), naming the tag and its line; nothing in the file is constructed or run. YAML it cannot
@@ -347,7 +359,7 @@ def check_config_file(path: Path) -> None:
         raise SystemExit(unreadable_line(path, err)) from None
     refuse_code_in_config(path, text)
     try:
-        loaded = yaml.load(text, Loader=yaml.Loader)  # only the tags refuse_code_in_config allows are left
+        loaded = yaml.load(text, Loader=RunConfigLoader)
     except yaml.YAMLError as err:
         raise SystemExit(yaml_error_line(path, err)) from None
     line = config_file_problem(path, text, loaded) or run_config_problem(loaded, path)

@@ -113,3 +113,14 @@ def test_no_command_runs_the_code_of_a_config_yml(tmp_path):
         assert proc.returncode == 1 and len(lines) == 1 and "os.system" in lines[0], (argv, proc.stderr[-2000:])
         assert "Traceback" not in proc.stderr, (argv, proc.stderr[-2000:])
         assert not marker.exists(), argv
+
+
+def test_the_loader_itself_builds_no_tag_outside_a_run_config(tmp_path):
+    """Behind :func:`refuse_code_in_config`, the loader that builds the config refuses such a tag too."""
+    from naka_gs_plugin.run.config_check import RunConfigLoader
+
+    marker = tmp_path / "marker"
+    with pytest.raises(yaml.constructor.ConstructorError, match="os.system"):
+        yaml.load(f"pwned: !!python/object/apply:os.system ['touch {marker}']", Loader=RunConfigLoader)
+    assert not marker.exists()
+    assert yaml.load(_run_config_text(), Loader=RunConfigLoader).method_name == "naka-gs"
