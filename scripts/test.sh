@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Set up (if needed) and run the whole test suite on CPU; extra arguments go to pytest. The full run
 # (no arguments, as CI) then checks a non-editable install (scripts/check_install.sh, < 2 min) and the wheel in
-# the oldest supported nerfstudio environment (scripts/check_compat.sh: ~4 min to build it the first time, ~8 GB).
+# nerfstudio's guide environment, as a user's plain `pip install` and at our oldest pins (scripts/check_compat.sh:
+# ~14 min on 2 busy cores; ~4 min more and ~8 GB to build that environment the first time).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh

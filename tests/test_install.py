@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import fnmatch
 import re
+import subprocess
+import sys
 from pathlib import Path
 from typing import Dict
 
@@ -14,7 +16,7 @@ from packaging.specifiers import SpecifierSet
 from packaging.utils import canonicalize_name
 from packaging.version import Version
 
-from naka_gs_plugin.requirements import too_old
+from naka_gs_plugin.requirements import incompatible, too_old
 
 tomllib = pytest.importorskip("tomllib", reason="Python < 3.11 has no tomllib; CI runs these on 3.11")
 
@@ -98,3 +100,44 @@ def test_an_older_dependency_is_refused_in_one_line(versions, refused):
             f"naka-gs supports {refused}{spec}, and this environment has {refused} {versions[refused]}: "
             f"pip install '{refused}{spec}' (or pip install naka-gs again, which installs it)"
         )
+
+
+KORNIA_RANGE = "kornia<0.8.3,>=0.7.3"
+
+
+@pytest.mark.parametrize(
+    "versions,refused",
+    [
+        ({"kornia": "0.8.2", "torch": "2.1.2+cu121"}, False),  # our range's newest, with the guide's torch
+        ({"kornia": "0.8.3", "torch": "2.14.1"}, False),  # outside the range, but not known to fail: pip's to refuse
+        ({"kornia": "0.8.3", "torch": "2.2.0"}, False),
+        ({"kornia": "0.8.3", "torch": None}, False),  # torch missing is another problem, not this pair's
+        ({"kornia": "0.8.3", "torch": "2.1.2+cu121"}, True),
+        ({"kornia": "0.9.2", "torch": "2.1.2"}, True),
+        ({"kornia": "0.8.3", "torch": "2.2.0rc1"}, True),  # a pre-release of 2.2 is below 2.2
+    ],
+)
+def test_a_pair_known_to_fail_together_is_refused_in_one_line(versions, refused):
+    message = incompatible([KORNIA_RANGE, "torch>=2.1.2,<2.16"], versions.get)
+    if not refused:
+        assert message is None
+    else:
+        assert message == (
+            f"kornia {versions['kornia']} fails at import with torch {versions['torch']} (kornia>=0.8.3 needs "
+            f"torch>=2.2): pip install '{KORNIA_RANGE}' (naka-gs's range, which works with torch {versions['torch']})"
+        )
+
+
+def test_importing_the_plugin_beside_a_known_bad_pair_ends_in_one_line():
+    """As ns-train loading our entry point (or a naka-gs-* script) meets it: no traceback, the fix, exit status 1."""
+    fake = (
+        "import importlib.metadata as m; version = m.version; "
+        "m.version = lambda n: {'kornia': '0.8.3', 'torch': '2.1.2'}.get(n) or version(n); "
+        "import naka_gs_plugin"
+    )
+    proc = subprocess.run([sys.executable, "-c", fake], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 1, proc.stderr
+    assert proc.stderr.splitlines() == [
+        f"naka-gs: kornia 0.8.3 fails at import with torch 2.1.2 (kornia>=0.8.3 needs torch>=2.2): "
+        f"pip install '{DEPENDENCIES['kornia']}' (naka-gs's range, which works with torch 2.1.2)"
+    ], proc.stderr

@@ -16,6 +16,8 @@ the upstream source it relies on pinned by sha256 beside it (:data:`UPSTREAM_SHA
   (:func:`tensorboard_writer_replaced`);
 - torch >= 2.6 loads checkpoints with ``weights_only=True``, and nerfstudio writes numpy scalars into them
   (:func:`activate` registers them as safe).
+- ns-render writes its videos with an ``ffmpeg`` it looks up on PATH (``check_ffmpeg_installed``, then mediapy):
+  without a system one, imageio-ffmpeg's binary is put there (:func:`put_ffmpeg_on_path`).
 
 Every hook is active only inside a naka-gs command or run: :func:`activate` is called by our console scripts, by
 ``ns-train naka-gs`` (the trainer config) and by ``eval_setup`` loading a naka-gs run (the config's
@@ -25,11 +27,14 @@ line loads a naka-gs run's config.yml. ``ns-train splatfacto`` and every other m
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import functools
 import os
+import shutil
 import stat
 import sys
+import tempfile
 import time
 from pathlib import Path
 from types import FrameType, TracebackType
@@ -77,6 +82,10 @@ UPSTREAM_SHA256: Dict[str, str] = {
     # Imports torchmetrics' LPIPS inside the method and builds it there.
     "nerfstudio.models.splatfacto.SplatfactoModel.populate_modules": (
         "be5dfb4957db9b7a5b3b0f82966ad9b26cf18f8761bd2cbe6245d3c4353f7277"
+    ),
+    # ns-render's video commands exit unless ``shutil.which("ffmpeg")`` finds one (put_ffmpeg_on_path).
+    "nerfstudio.utils.install_checks.check_ffmpeg_installed": (
+        "a0b8730f277ea0169cb311fc08d9435c28a7c92b5c59b95b5f5680608e96a661"
     ),
     # The files ns-export's cameras command writes (EXPORTED_FILES).
     "nerfstudio.scripts.exporter.ExportCameraPoses.main": (
@@ -172,6 +181,28 @@ def activate_for_command(argv: Optional[Sequence[str]] = None) -> None:
     except (OSError, UnicodeDecodeError) as err:
         raise SystemExit(unreadable_line(path, err)) from None
     refuse_code_in_config(path, text)
+    if Path((sys.argv if argv is None else argv)[0]).name == "ns-render":
+        put_ffmpeg_on_path()
+
+
+def put_ffmpeg_on_path() -> None:
+    """Without an ``ffmpeg`` on PATH, put imageio-ffmpeg's binary there as ``ffmpeg`` (a link in a folder of this
+    process, removed at its exit, at the end of PATH): nerfstudio's check, mediapy's video writer and the ffmpeg
+    commands ns-render starts all find it. A platform imageio-ffmpeg has no binary for gets one line, and ns-render
+    then its own "Could not find ffmpeg"."""
+    if shutil.which("ffmpeg"):
+        return
+    try:
+        import imageio_ffmpeg
+
+        exe = imageio_ffmpeg.get_ffmpeg_exe()
+    except (ImportError, RuntimeError) as err:
+        print(f"naka-gs: imageio-ffmpeg gives no ffmpeg here ({err}): install ffmpeg to write videos", file=sys.stderr)
+        return
+    folder = tempfile.mkdtemp(prefix="naka-gs-ffmpeg-")
+    atexit.register(shutil.rmtree, folder, ignore_errors=True)
+    os.symlink(exe, os.path.join(folder, "ffmpeg"))
+    os.environ["PATH"] = os.pathsep.join(filter(None, [os.environ.get("PATH"), folder]))
 
 
 # ---------------------------------------------------------------------------------------------- eval_setup frames

@@ -29,8 +29,8 @@ from naka_gs_plugin.errors import UserError, os_error_exit, signal_exit_status, 
 
 T = TypeVar("T")
 
-# Before a script imports kornia: kornia 0.8 calls torch.jit.script at import, which torch 2.14 deprecates with a
-# warning on stderr that a user of a console script can do nothing about (scripts/constraints.txt pins both).
+# Before a script imports nerfstudio: its cameras module calls torch.jit.script at import, which torch 2.14 deprecates
+# with a warning on stderr that a user of a console script can do nothing about (scripts/constraints.txt pins both).
 warnings.filterwarnings("ignore", message=r"`torch\.jit\.script` is deprecated", category=FutureWarning)
 
 

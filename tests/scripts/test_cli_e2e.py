@@ -195,8 +195,11 @@ def test_eval_writes_strict_json_with_psnr_ssim_and_lpips_offline(config_yml, tm
 
 # ---------------------------------------------------------------------------------------- 3. export
 def test_export_gaussian_splat_ply_matches_checkpoint(config_yml, tmp_path):
+    """The 3DGS PLY fields other viewers read (nerfstudio 1.1.5's exporter, ``--ply-color-mode sh_coeffs``), each
+    with the checkpoint's values."""
     import numpy as np
     import open3d as o3d
+    from plyfile import PlyData
 
     out_dir = tmp_path / "export"
     res = _run(
@@ -219,6 +222,26 @@ def test_export_gaussian_splat_ply_matches_checkpoint(config_yml, tmp_path):
         f"PLY has {points.shape[0]} points, checkpoint {means.shape[0]} Gaussians"
     )
     np.testing.assert_allclose(points, means.numpy(), rtol=0, atol=1e-6)
+
+    vertex = PlyData.read(str(plys[0]))["vertex"]
+    params = {k.rpartition(".")[2]: v.numpy() for k, v in state["pipeline"].items() if "gauss_params" in k}
+    n_rest = params["features_rest"].shape[1] * 3
+    assert [p.name for p in vertex.properties] == (
+        ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+        + [f"f_rest_{i}" for i in range(n_rest)]
+        + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    )
+    as_columns = {  # the exporter's layout: f_rest channel-major (the reference implementation's order)
+        "f_dc": params["features_dc"],
+        "f_rest": params["features_rest"].transpose(0, 2, 1).reshape(len(means), -1),
+        "opacity": params["opacities"],
+        "scale": params["scales"],
+        "rot": params["quats"],
+    }
+    for prefix, expected in as_columns.items():
+        names = [p.name for p in vertex.properties if p.name == prefix or p.name.startswith(prefix + "_")]
+        got = np.stack([vertex[name] for name in names], axis=1)
+        np.testing.assert_allclose(got, expected.reshape(len(means), -1), rtol=0, atol=1e-6, err_msg=prefix)
 
 
 # ---------------------------------------------------------------------------------------- 4. render
@@ -249,6 +272,42 @@ def test_render_dataset_test_split_writes_two_images(config_yml, tmp_path):
     for path in images:
         with Image.open(path) as im:
             assert im.size == (64, 48), (path, im.size)
+
+
+def test_render_interpolate_writes_a_video_with_the_ffmpeg_pip_installed(config_yml, tmp_path):
+    """With no ffmpeg on PATH (folders holding one left out), ns-render of a naka-gs run writes its video with
+    imageio-ffmpeg's binary: 3 steps between the 2 test cameras, at half the 64x48 scene."""
+    import imageio_ffmpeg
+
+    env = _env()
+    env["PATH"] = os.pathsep.join(d for d in env["PATH"].split(os.pathsep) if not (Path(d) / "ffmpeg").exists())
+    out = tmp_path / "interpolate.mp4"
+    res = _run(
+        _cmd(
+            "ns-render",
+            "interpolate",
+            "--load-config",
+            str(config_yml),
+            "--output-path",
+            str(out),
+            "--interpolation-steps",
+            "3",
+            "--frame-rate",
+            "3",
+            "--downscale-factor",
+            "2",
+        ),  # fmt: skip
+        cwd=config_yml.parents[4],
+        env=env,
+        timeout=300,
+    )
+    assert res.rc == 0, res.tail()
+    assert out.is_file(), f"ns-render wrote no {out}\n" + res.tail()
+    frames = imageio_ffmpeg.read_frames(str(out))
+    meta = next(frames)
+    assert tuple(meta["size"]) == (32, 24), meta
+    assert sum(len(frame) == 32 * 24 * 3 for frame in frames) == 3
+    assert imageio_ffmpeg.count_frames_and_secs(str(out))[0] == 3
 
 
 # ---------------------------------------------------------------------------------------- 5. viewer
