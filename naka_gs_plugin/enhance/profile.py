@@ -5,11 +5,15 @@ capture chroma and capture tone) onto the camera's normal-light rendering of the
 
 1. a monotone curve per channel, from the enhanced sRGB value to linear light (level-dependent gains: the dark
    JPEG loses its red difference in the shadows, not in the highlights);
-2. a 3x3 colour matrix in linear light (the cross-channel part of the cast), then the sRGB encoding.
+2. a 3x3 colour matrix in linear light (the cross-channel part of the cast), then the sRGB encoding;
+3. optionally (version 2, ``naka-gs-calibrate --lut-size``), a residual 3D look-up table in sRGB, trilinear, fitted
+   smooth: what depends on hue and saturation together (a red bent one way, a yellow another), which a curve per
+   channel and one matrix cannot express.
 
 It is fitted robustly (a Huber loss in sRGB: squared errors, as PSNR weighs them, up to :data:`HUBER_DELTA`; what a
 pair does not share beyond it, a moved object or a lamp, pulls no harder) on area-downscaled pairs, in seconds, by :func:`fit_profile`; :func:`apply_profile` is the view stage's maths. A profile is a small JSON file
 (``naka-gs-calibrate`` writes it) that also records the chain it was fitted after and the pairs' exposure ratios.
+Version 1 files (no look-up table) are read as they always were.
 
 A profile is checked as a photo is (:meth:`CameraProfile.load`, then :func:`check_view` on each view it renders): a
 file that is too large or too deeply nested is refused before it is parsed, and maps that would make the views black,
@@ -35,7 +39,9 @@ from naka_gs_plugin.enhance.exposure import linear_to_srgb, srgb_to_linear
 from naka_gs_plugin.errors import UserError
 
 PROFILE_FORMAT = "naka-gs-camera-profile"
-PROFILE_VERSION = 1
+PROFILE_VERSION = 2
+READ_VERSIONS = (1, 2)
+"""Versions read: 1 has no ``lut`` (the maps are the same without one)."""
 KNOTS = 17
 """Curve knots, evenly spaced in the enhanced sRGB value: a step of 1/16 (16 codes of 255)."""
 FIT_LONG_SIDE = 512
@@ -47,10 +53,16 @@ HUBER_DELTA = 0.1
 """Residuals beyond this (sRGB, 25 codes) count linearly in the fit."""
 
 
-MAX_BYTES = 1 << 20
-"""Largest profile file read (1 MiB): the profiles naka-gs-calibrate wrote from RealX3D, LOL and LOM pairs are
-4.4-8.1 KB (17 knots x 3 curves, a 3x3 matrix, the chain's keys, about 200 bytes per pair: 5000 pairs would still
-fit). Anything larger is not a profile; no more of it is read."""
+MAX_BYTES = 4 << 20
+"""Largest profile file read (4 MiB): without a look-up table the profiles naka-gs-calibrate wrote from RealX3D, LOL
+and LOM pairs are 4.4-8.1 KB (17 knots x 3 curves, a 3x3 matrix, the chain's keys, about 200 bytes per pair); a
+:data:`LUT_MAX_SIZE` table adds about 1.5 MB (3 x 33^3 numbers, one per line). Anything larger is not a profile; no
+more of it is read."""
+LUT_MAX_SIZE = 33
+"""Largest look-up table side (cells per axis): 33 is the common size of colour LUTs (a step of 8 codes of 255)."""
+LUT_MAX = 0.5
+"""Largest residual of a look-up table cell, in magnitude (sRGB): half the range. A residual beyond it moves a colour
+across the gamut: not a profile of a camera."""
 MAX_DEPTH = 16
 """Deepest bracket nesting read (objects and arrays): a calibrated profile nests 4-5 deep (the chain's stage keys, a
 pair's shift); checked on the bytes before ``json`` parses them, whose recursive parser ends in a ``RecursionError``
@@ -132,14 +144,34 @@ def _grid(value: Any, rows: int, cols: int, name: str) -> Optional[str]:
     return None
 
 
-def check_maps(curves: Any, matrix: Any) -> Optional[str]:
+def _check_lut(lut: Any) -> Optional[str]:
+    """What is wrong with ``lut`` as a profile's JSON holds a look-up table (``[3][D][D][D]`` finite numbers within
+    :data:`LUT_MAX`, ``2 <= D <= LUT_MAX_SIZE``), or None."""
+    size = len(lut[0]) if isinstance(lut, list) and lut and isinstance(lut[0], list) else 0
+    if not (isinstance(lut, list) and len(lut) == 3 and 2 <= size <= LUT_MAX_SIZE):
+        return f"lut must be 3 tables of D x D x D numbers (2 <= D <= {LUT_MAX_SIZE})"
+    for c, table in enumerate(lut):
+        if not (isinstance(table, list) and len(table) == size):
+            return f"lut[{c}] has {len(table) if isinstance(table, list) else 'no'} planes, not {size}"
+        for b, plane in enumerate(table):
+            problem = _grid(plane, size, size, f"lut[{c}][{b}]")
+            if problem:
+                return problem
+    big = float(torch.tensor(lut, dtype=torch.float64).abs().max())
+    if big > LUT_MAX:
+        return f"the look-up table has a residual of magnitude {big:g}, beyond {LUT_MAX:g} (sRGB)"
+    return None
+
+
+def check_maps(curves: Any, matrix: Any, lut: Any = None) -> Optional[str]:
     """What makes ``curves`` and ``matrix`` (as a profile's JSON holds them) unusable, in a few words, or None: the
     shapes and types, finite values in range (:data:`CURVE_MAX`, :data:`MATRIX_MAX`), rising curves
     (:data:`FALL_TOLERANCE`, :data:`MIN_RISE`), a matrix that neither inverts colours (determinant > 0) nor is
     ill-conditioned (:data:`CONDITION_MAX`), and a grey ramp that comes out rising in every channel
-    (:data:`RAMP_MIN_SPAN`, :data:`RAMP_MAX_FALL`). Every profile ``naka-gs-calibrate`` wrote passes (the bounds'
-    notes give their values)."""
+    (:data:`RAMP_MIN_SPAN`, :data:`RAMP_MAX_FALL`), the look-up table (if any) included. Every profile
+    ``naka-gs-calibrate`` wrote passes (the bounds' notes give their values)."""
     problem = _grid(curves, 3, KNOTS, "curves") or _grid(matrix, 3, 3, "matrix")
+    problem = problem or (None if lut is None else _check_lut(lut))
     if problem:
         return problem
     for c, curve in enumerate(curves):
@@ -168,7 +200,8 @@ def check_maps(curves: Any, matrix: Any) -> Optional[str]:
     if not cond <= CONDITION_MAX:
         return f"the colour matrix has condition number {cond:.3g}, beyond {CONDITION_MAX:g}: it is nearly singular"
     ramp = torch.linspace(0, 1, 256, dtype=torch.float32)[:, None].expand(-1, 3)
-    out = apply_maps(ramp, torch.tensor(curves, dtype=torch.float32), m.float())
+    table = None if lut is None else torch.tensor(lut, dtype=torch.float32)
+    out = apply_maps(ramp, torch.tensor(curves, dtype=torch.float32), m.float(), table)
     for c in range(3):
         channel = out[:, c]
         rise = float(channel[-1] - channel[0])
@@ -181,7 +214,7 @@ def check_maps(curves: Any, matrix: Any) -> Optional[str]:
             )
             return (
                 f"a grey ramp from black to white comes out {'rgb'[c]} {float(channel[0]):.3f} to "
-                f"{float(channel[-1]):.3f} ({why}, sRGB): the curves and matrix together flatten or invert that channel"
+                f"{float(channel[-1]):.3f} ({why}, sRGB): the profile's maps together flatten or invert that channel"
             )
     return None
 
@@ -212,6 +245,9 @@ class CameraProfile:
     """Per calibration pair: name, exposure ratio, PSNR before and after the profile."""
     fit: Dict[str, Any] = field(default_factory=dict)
     """How the fit went: seconds, samples, loss."""
+    lut: Optional[List[List[List[List[float]]]]] = None
+    """``[3][D][D][D]`` residual look-up table (sRGB, added after the matrix), indexed ``[channel][blue][green][red]``
+    at the cells ``k / (D - 1)``; None: none (every version 1 profile)."""
 
     def to_json(self) -> str:
         return json.dumps({"format": PROFILE_FORMAT, "version": PROFILE_VERSION, **asdict(self)}, indent=1)
@@ -225,9 +261,10 @@ class CameraProfile:
         if not isinstance(data, dict) or data.get("format") != PROFILE_FORMAT:
             raise CameraProfileError(f"{option} {path}: not a camera profile -- {fix}")
         version = data.get("version")
-        if not (_number(version) and version == PROFILE_VERSION):
+        if not (_number(version) and version in READ_VERSIONS):
             raise CameraProfileError(
-                f"{option} {path}: profile version {_describe(version)}, this naka-gs reads {PROFILE_VERSION} -- "
+                f"{option} {path}: profile version {_describe(version)}, this naka-gs reads "
+                f"{' and '.join(map(str, READ_VERSIONS))} -- "
                 "calibrate again with this version (naka-gs-calibrate PAIRS --out PROFILE)"
             )
         missing = [k for k in ("curves", "matrix") if k not in data]
@@ -239,17 +276,21 @@ class CameraProfile:
                     f"{option} {path}: damaged camera profile ({key} is a {type(data[key]).__name__}, not a "
                     f"{'list' if kind is list else 'mapping'}) -- {fix}"
                 )
-        problem = check_maps(data["curves"], data["matrix"])
+        lut = data.get("lut") if version >= 2 else None
+        problem = check_maps(data["curves"], data["matrix"], lut)
         if problem:
             raise UnusableProfileError(f"{option} {path}: unusable camera profile: {problem} -- {_refit(option)}")
         return cls(
             curves=[[float(v) for v in row] for row in data["curves"]],
             matrix=[[float(v) for v in row] for row in data["matrix"]],
             **{k: data.get(k, {} if k != "pairs" else []) for k in ("chain", "pairs", "fit")},
+            lut=None if lut is None else torch.tensor(lut, dtype=torch.float64).tolist(),
         )
 
-    def tensors(self) -> tuple[Float[Tensor, "3 K"], Float[Tensor, "3 3"]]:
-        return torch.tensor(self.curves, dtype=torch.float32), torch.tensor(self.matrix, dtype=torch.float32)
+    def tensors(self) -> tuple[Float[Tensor, "3 K"], Float[Tensor, "3 3"], Optional[Float[Tensor, "3 D D D"]]]:
+        """The curves, the matrix and the look-up table (None without one), float32."""
+        lut = None if self.lut is None else torch.tensor(self.lut, dtype=torch.float32)
+        return torch.tensor(self.curves, dtype=torch.float32), torch.tensor(self.matrix, dtype=torch.float32), lut
 
 
 def _refit(option: str) -> str:
@@ -269,7 +310,7 @@ def _read_json(path: Path, option: str, fix: str) -> Any:
         raise CameraProfileError(f"{option} {path}: not a camera profile ({err}) -- {fix}") from None
     if len(raw) > MAX_BYTES:
         raise CameraProfileError(
-            f"{option} {path}: not a camera profile (larger than {MAX_BYTES >> 20} MiB; a profile is a few KB) -- {fix}"
+            f"{option} {path}: not a camera profile (larger than {MAX_BYTES >> 20} MiB; a profile is at most about 1.5 MB) -- {fix}"
         )
     depth = nesting_depth(raw)
     if depth > MAX_DEPTH:
@@ -317,11 +358,24 @@ def _curve(x: Float[Tensor, "*N 3"], curves: Float[Tensor, "3 K"]) -> Float[Tens
     return flat[lo, ch] * (1 - frac) + flat[lo + 1, ch] * frac
 
 
+def apply_lut(x: Float[Tensor, "*N 3"], lut: Float[Tensor, "3 D D D"]) -> Float[Tensor, "*N 3"]:
+    """The residual look-up table's value at sRGB ``x`` (channel-last, [0, 1]): trilinear between its cells
+    (``grid_sample`` on the ``[blue][green][red]`` grid, whose ``x, y, z`` axes are red, green, blue)."""
+    grid = (x.reshape(-1, 3).clamp(0, 1) * 2 - 1)[None, :, None, None, :]
+    out = torch.nn.functional.grid_sample(lut[None], grid, mode="bilinear", align_corners=True)
+    return out[0, :, :, 0, 0].t().reshape(x.shape)
+
+
 def apply_maps(
-    image: Float[Tensor, "*N 3"], curves: Float[Tensor, "3 K"], matrix: Float[Tensor, "3 3"]
+    image: Float[Tensor, "*N 3"],
+    curves: Float[Tensor, "3 K"],
+    matrix: Float[Tensor, "3 3"],
+    lut: Optional[Float[Tensor, "3 D D D"]] = None,
 ) -> Float[Tensor, "*N 3"]:
-    """The profile's maths on sRGB [0, 1] values (channel-last): curves to linear light, matrix, sRGB encoding."""
-    return linear_to_srgb((_curve(image, curves) @ matrix.t()).clamp(0, 1))
+    """The profile's maths on sRGB [0, 1] values (channel-last): curves to linear light, matrix, sRGB encoding, then
+    the look-up table's residual (if any)."""
+    out = linear_to_srgb((_curve(image, curves) @ matrix.t()).clamp(0, 1))
+    return out if lut is None else (out + apply_lut(out, lut)).clamp(0, 1)
 
 
 def apply_profile(image: Float[Tensor, "H W 3"], profile: CameraProfile) -> Float[Tensor, "H W 3"]:
@@ -408,3 +462,48 @@ def fit_profile(
         curves = _monotone(first, inc)
         final = float(torch.nn.functional.huber_loss(apply_maps(x, curves, matrix), y, delta=HUBER_DELTA))
     return curves.detach(), matrix.detach(), {"samples": int(len(x)), "steps": steps, "loss": final}
+
+
+LUT_SMOOTHNESS = 0.3
+"""Weight of the look-up table's smoothness term (the mean squared difference of neighbouring cells, against the
+Huber loss): cells no pair reaches follow their neighbours, and the table cannot learn a pair's noise."""
+
+
+def fit_lut(
+    profiled: Sequence[Float[Tensor, "H W 3"]],
+    references: Sequence[Float[Tensor, "H W 3"]],
+    size: int,
+    smoothness: float = LUT_SMOOTHNESS,
+    steps: int = 1500,
+    batch: int = 16384,
+    seed: int = 0,
+) -> tuple[Float[Tensor, "3 D D D"], Dict[str, Any]]:
+    """A residual look-up table of ``size`` cells per axis taking each ``profiled`` view (sRGB [0, 1], the curves and
+    matrix applied) to its ``references`` photo: Huber loss (:data:`HUBER_DELTA`) in sRGB on area-downscaled pixels
+    plus ``smoothness`` x the mean squared difference of neighbouring cells, Adam on ``steps`` random batches (cosine
+    learning rate), from zero (no change). Returns ``(lut, stats)``."""
+    gen = torch.Generator().manual_seed(seed)
+    x = torch.cat([_area(p.float(), FIT_LONG_SIDE).reshape(-1, 3) for p in profiled])
+    y = torch.cat([_area(r.float(), FIT_LONG_SIDE).reshape(-1, 3) for r in references])
+    keep = y.max(dim=1).values < 0.98  # as fit_profile: clipped references carry no colour
+    x, y = x[keep], y[keep]
+    lut = torch.zeros(3, size, size, size, requires_grad=True)
+    opt = torch.optim.Adam([lut], lr=0.01)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps)
+    batch = min(len(x), batch)
+
+    def smooth(table: Tensor) -> Tensor:
+        return sum((table.diff(dim=k) ** 2).mean() for k in (1, 2, 3))
+
+    for _ in range(steps):
+        idx = torch.randint(len(x), (batch,), generator=gen)
+        out = (x[idx] + apply_lut(x[idx], lut)).clamp(0, 1)
+        loss = torch.nn.functional.huber_loss(out, y[idx], delta=HUBER_DELTA) + smoothness * smooth(lut)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        sched.step()
+    with torch.no_grad():
+        lut = lut.detach().clamp(-LUT_MAX, LUT_MAX)
+        final = float(torch.nn.functional.huber_loss((x + apply_lut(x, lut)).clamp(0, 1), y, delta=HUBER_DELTA))
+    return lut, {"lut_size": size, "lut_smoothness": smoothness, "lut_loss": final}

@@ -228,8 +228,8 @@ class ProfileStage(ViewStage):
     profile_sha1: str = ""
     path: Path = runtime(default=Path())
     _profile: Optional[CameraProfile] = runtime(default=None, init=False)
-    _maps: Optional[Tuple[Tensor, Tensor]] = runtime(default=None, init=False)
-    """The profile's curves and matrix as tensors, made once for every view."""
+    _maps: Optional[Tuple[Tensor, Tensor, Optional[Tensor]]] = runtime(default=None, init=False)
+    """The profile's curves, matrix and look-up table (or None) as tensors, made once for every view."""
 
     @classmethod
     def build(cls, config: Any, enhancer: Any) -> Optional["ProfileStage"]:

@@ -19,6 +19,7 @@ from naka_gs_plugin.enhance.profile import (
     CameraProfileError,
     apply_maps,
     apply_profile,
+    fit_lut,
     fit_profile,
 )
 from naka_gs_plugin.enhance.stages import CaptureToneStage, ExposureStage, ProfileStage
@@ -210,3 +211,70 @@ def test_the_profile_path_is_recorded_absolute(tmp_path, monkeypatch):
     """A run's config.yml names the profile so that ns-eval or ns-viewer started in another folder finds it."""
     monkeypatch.chdir(tmp_path)
     assert EnhanceConfig(profile="camera.json").profile == tmp_path / "camera.json"
+
+
+def _hue_camera(x: torch.Tensor) -> torch.Tensor:
+    """A camera that bends colours by hue, as no curve per channel and matrix can: reds gain saturation (towards
+    pure red), greens lose it (towards their grey), greys and blues stay."""
+    grey = x.mean(-1, keepdim=True)
+    red = (x[..., :1] - x[..., 1:].max(-1, keepdim=True).values).clamp(min=0)
+    green = (x[..., 1:2] - torch.maximum(x[..., :1], x[..., 2:])).clamp(min=0)
+    return (x + 0.8 * red * (x - grey) - 2.0 * green * (x - grey)).clamp(0, 1)
+
+
+def test_the_look_up_table_learns_what_depends_on_hue_and_the_curves_cannot():
+    g = torch.Generator().manual_seed(0)
+    images = [torch.rand(24, 32, 3, generator=g) for _ in range(6)]
+    images = [torch.nn.functional.interpolate(x.permute(2, 0, 1)[None], (48, 64))[0].permute(1, 2, 0) for x in images]
+    refs = [_hue_camera(x) for x in images]
+    curves, matrix, _ = fit_profile(images[:4], refs[:4], steps=300)
+    profiled = [apply_maps(x, curves, matrix) for x in images]
+    lut, stats = fit_lut(profiled[:4], refs[:4], size=9, steps=600)
+    assert stats["lut_size"] == 9 and lut.shape == (3, 9, 9, 9)
+    for x, p, ref in zip(images[4:], profiled[4:], refs[4:]):
+        without = (p - ref).abs().mean()
+        with_lut = (apply_maps(x, curves, matrix, lut) - ref).abs().mean()
+        assert with_lut < 0.6 * without  # on views the fit never saw
+
+
+def test_a_profile_with_a_look_up_table_round_trips_and_a_run_applies_it(tmp_path):
+    lut = torch.zeros(3, 5, 5, 5)
+    lut[0] = 0.1  # red up by 0.1 everywhere
+    profile = _identity()
+    profile.lut = lut.tolist()
+    path = tmp_path / "camera.json"
+    path.write_text(profile.to_json())
+    loaded = CameraProfile.load(path)
+    assert json.loads(path.read_text())["version"] == 2 and loaded.lut == profile.lut
+    stage = ProfileStage(profile_sha1="x", path=path)
+    image = torch.full((4, 4, 3), 0.5)
+    out = stage.apply(image, image)
+    assert_close(out[..., 0], torch.full((4, 4), 0.6), atol=6e-3, rtol=0)  # the identity curve's chord, then +0.1
+    assert_close(out[..., 1:], apply_profile(image, _identity())[..., 1:])
+
+
+def test_a_version_1_profile_has_no_look_up_table_and_renders_as_before(tmp_path):
+    path = tmp_path / "camera.json"
+    data = json.loads(_identity().to_json())
+    data.pop("lut")
+    path.write_text(json.dumps({**data, "version": 1}))
+    loaded = CameraProfile.load(path)
+    image = torch.from_numpy(_scene(2)).float()
+    assert loaded.lut is None
+    assert torch.equal(apply_profile(image, loaded), apply_maps(image, *loaded.tensors()[:2]))
+
+
+def test_calibrate_fits_a_look_up_table_only_when_asked_and_refuses_a_bad_size(tmp_path):
+    pairs = _write_pairs(tmp_path / "pairs", n=3)
+    plain = Calibrate(pairs=pairs, out=tmp_path / "a.json", enhance=EnhanceConfig(correction="none"), sheet_pairs=0)
+    assert plain.main().lut is None
+    table = Calibrate(
+        pairs=pairs, out=tmp_path / "b.json", enhance=EnhanceConfig(correction="none"), sheet_pairs=0, lut_size=5
+    )
+    profile = table.main()
+    assert torch.tensor(profile.lut).shape == (3, 5, 5, 5) and profile.fit["lut_size"] == 5
+    assert CameraProfile.load(tmp_path / "b.json").lut == profile.lut
+    bad = Calibrate(pairs=pairs, out=tmp_path / "c.json", lut_size=1)
+    with pytest.raises(EnhanceOptionError, match=r"^--lut-size 1: a look-up table has 2 to 33 cells per axis"):
+        bad.main()
+    assert not (tmp_path / "c.json").exists()

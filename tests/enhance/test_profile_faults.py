@@ -56,6 +56,15 @@ def profile_text(curves=None, matrix=None, **extra) -> str:
     return json.dumps({**data, "matrix": EYE if matrix is None else matrix, "chain": {}, "pairs": [], **extra})
 
 
+def _lut(value: float = 0.0, nan_at=None) -> list:
+    """A 2-cell look-up table of ``value`` everywhere (NaN at ``nan_at``, an index ``[c][b][g][r]``)."""
+    lut = [[[[value] * 2 for _ in range(2)] for _ in range(2)] for _ in range(3)]
+    if nan_at is not None:
+        c, b, g, r = nan_at
+        lut[c][b][g][r] = float("nan")
+    return lut
+
+
 BAD: Dict[str, Tuple[Callable[[], str], str, str]] = {
     # name: (the file's text, what the line says is wrong, which fix)
     "curves_all_zero": (
@@ -92,7 +101,7 @@ BAD: Dict[str, Tuple[Callable[[], str], str, str]] = {
     ),
     "oversize_file": (
         lambda: profile_text(notes="x" * MAX_BYTES),
-        "not a camera profile (larger than 1 MiB; a profile is a few KB)",
+        "not a camera profile (larger than 4 MiB; a profile is at most about 1.5 MB)",
         REPLACE,
     ),
     "a_nan": (
@@ -111,7 +120,7 @@ BAD: Dict[str, Tuple[Callable[[], str], str, str]] = {
 MORE: Dict[str, Tuple[Callable[[], str], str, str]] = {
     "version_true": (
         lambda: profile_text().replace('"version": 1', '"version": true'),
-        "profile version true, this naka-gs reads 1",
+        "profile version true, this naka-gs reads 1 and 2",
         "calibrate again with this version (naka-gs-calibrate PAIRS --out PROFILE)",
     ),
     "a_huge_integer": (
@@ -137,7 +146,7 @@ MORE: Dict[str, Tuple[Callable[[], str], str, str]] = {
     "matrix_inverting_two_channels": (
         lambda: profile_text(matrix=[[-1, 0, 0], [0, -1, 0], [0, 0, 1]]),
         "unusable camera profile: a grey ramp from black to white comes out r 0.000 to 0.000 (rises by less than "
-        "0.05, sRGB): the curves and matrix together flatten or invert that channel",
+        "0.05, sRGB): the profile's maps together flatten or invert that channel",
         REFIT,
     ),
     "highlights_inverted": (
@@ -145,7 +154,27 @@ MORE: Dict[str, Tuple[Callable[[], str], str, str]] = {
             curves=[IDENTITY, IDENTITY, [0.0] * (KNOTS - 1) + [1.0]], matrix=[[1, 0, -0.8], [0, 1, 0], [0, 0, 1]]
         ),
         "unusable camera profile: a grey ramp from black to white comes out r 0.000 to 0.485 (falls by 0.453 on the "
-        "way, more than 0.25, sRGB): the curves and matrix together flatten or invert that channel",
+        "way, more than 0.25, sRGB): the profile's maps together flatten or invert that channel",
+        REFIT,
+    ),
+    "lut_nan": (
+        lambda: profile_text(version=2, lut=_lut(nan_at=(0, 1, 1, 0))),
+        "unusable camera profile: lut[0][1][1][0] is NaN, not a finite number",
+        REFIT,
+    ),
+    "lut_too_strong": (
+        lambda: profile_text(version=2, lut=_lut(value=0.9)),
+        "unusable camera profile: the look-up table has a residual of magnitude 0.9, beyond 0.5 (sRGB)",
+        REFIT,
+    ),
+    "lut_two_channels": (
+        lambda: profile_text(version=2, lut=_lut()[:2]),
+        "unusable camera profile: lut must be 3 tables of D x D x D numbers (2 <= D <= 33)",
+        REFIT,
+    ),
+    "lut_uneven": (
+        lambda: profile_text(version=2, lut=[_lut()[0], _lut()[1], _lut()[2][:1]]),
+        "unusable camera profile: lut[2] has 1 planes, not 2",
         REFIT,
     ),
     "matrix_missing": (
