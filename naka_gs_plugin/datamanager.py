@@ -6,6 +6,11 @@ so metrics compare renders against the real normal-light ground truth. Scenes wi
 ground-truth eval images (RealX3D) train without evaluation, and anything asking for eval images
 gets a one-line :class:`MissingGroundTruthError` (an exit, not a traceback).
 
+Eval images that are dark captures (``metadata["eval_truth"] == "dark"``: the nerfstudio-data and colmap layouts,
+a naka-gs-process-data scene) are no truth either: where they are the training views themselves (the default) training
+evaluates nothing; held-out ones are scored during training, the pipeline labelling those metrics ``vs_dark_*``;
+``ns-eval`` gets the one line saying there is no normal-light truth.
+
 Commands that load a trained run (``ns-eval``, ``ns-render dataset``, ``ns-viewer``: a datamanager built
 with ``test_mode`` other than ``val``) read images after ``eval_setup``, outside ns-train's conversion of
 user errors: an image found unreadable there is the same one ``naka-gs:`` line (:attr:`LowLightDataset.loads_a_run`).
@@ -30,6 +35,7 @@ from torch import Tensor
 
 from naka_gs_plugin.cpu import keep_freed_memory
 from naka_gs_plugin.data.images import read_raw, read_rgb
+from naka_gs_plugin.data.layouts import LayoutConfig
 from naka_gs_plugin.data.lowlight_dataparser import LowLightDataError, LowLightDataParserConfig
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig, Enhancer
 from naka_gs_plugin.errors import user_error_exit
@@ -57,6 +63,8 @@ class LowLightDataset(InputDataset):
     """
 
     _warned = False
+    evaluated = True
+    """False where the eval views are the dark training captures themselves: nothing to evaluate (falsy)."""
     loads_a_run = False
     """Set by a datamanager built to load a trained run (``ns-eval``, ``ns-render dataset``...): a user error
     reading an image (a :class:`~naka_gs_plugin.errors.UserError`) is then the one line ``naka-gs: <message>``
@@ -66,8 +74,13 @@ class LowLightDataset(InputDataset):
     def has_ground_truth(self) -> bool:
         return bool(self._dataparser_outputs.metadata.get("has_ground_truth", True))
 
+    @property
+    def eval_truth(self) -> str:
+        """``normal-light`` (the images are the truth renders are scored against) or ``dark`` (dark captures)."""
+        return str(self._dataparser_outputs.metadata.get("eval_truth", "normal-light"))
+
     def __bool__(self) -> bool:
-        return self.has_ground_truth and len(self) > 0
+        return self.has_ground_truth and self.evaluated and len(self) > 0
 
     def get_numpy_image(self, image_idx: int) -> np.ndarray:
         """nerfstudio's 8-bit PIL read (``cache_images_type uint8``), after a full check of the file
@@ -119,7 +132,8 @@ class LowLightDatamanagerConfig(FullImageDatamanagerConfig):
     """FullImageDatamanager whose training images pass through the enhancement pipeline."""
 
     _target: Type = field(default_factory=lambda: LowLightDatamanager)
-    dataparser: LowLightDataParserConfig = field(default_factory=LowLightDataParserConfig)
+    dataparser: LayoutConfig = field(default_factory=LowLightDataParserConfig)
+    """The scene layout: lowlight-data (default), nerfstudio-data or colmap (``naka_gs_plugin.data.layouts``)."""
     enhance: EnhanceConfig = field(default_factory=EnhanceConfig)
     """Enhancement applied to training images only (``--pipeline.datamanager.enhance.sigma`` ...)."""
     cache_images_type: Literal["uint8", "float32"] = "float32"
@@ -148,8 +162,20 @@ class LowLightDatamanager(FullImageDatamanager[LowLightDataset]):
         for dataset in (self.train_dataset, self.eval_dataset):
             dataset.loads_a_run = test_mode != "val"
         self.has_ground_truth = bool(self.eval_dataset)
-        if not self.has_ground_truth:
+        self.against_dark = self.has_ground_truth and self.eval_dataset.eval_truth == "dark"
+        """Whether the eval images are dark captures: metrics against them are labelled, ns-eval refuses them."""
+        if self.against_dark and self._eval_views_train():
+            self.eval_dataset.evaluated = False
+        if not self.eval_dataset:
             self.eval_unseen_cameras = []
+
+    def _eval_views_train(self) -> bool:
+        """Whether every eval image is a training image (``--eval-mode all``, naka-gs-process-data's default)."""
+
+        def files(outputs) -> set:
+            return {str(p) for p in outputs.metadata.get("source_images", outputs.image_filenames)}
+
+        return files(self.eval_dataset._dataparser_outputs) <= files(self.train_dataparser_outputs)
 
     def resume_state(self) -> Dict[str, Any]:
         """Where training is in its view order, which nerfstudio keeps outside any ``state_dict``: the training views
@@ -263,18 +289,31 @@ class LowLightDatamanager(FullImageDatamanager[LowLightDataset]):
             "use a scene with test images (e.g. LOM, or a naka-gs-sim scene) for metrics"
         )
 
-    @property
-    def fixed_indices_eval_dataloader(self) -> List[Tuple[Cameras, Dict]]:
+    def _dark_message(self) -> str:
+        note = self.eval_dataset._dataparser_outputs.metadata.get("truth_note", "its eval images are dark captures")
+        return (
+            f"naka-gs: {self.config.dataparser.data}: no normal-light truth ({note}) -- nothing to score renders "
+            "against: render the views with ns-render, or use a lowlight-data scene with normal-light test images "
+            "(e.g. LOM) for metrics"
+        )
+
+    def _check_truth(self) -> None:
+        """One line where there is nothing to evaluate against: no images, or dark captures outside training's
+        labelled metrics (``ns-eval`` loads a run with ``test_mode`` test)."""
         if not self.has_ground_truth:
             raise MissingGroundTruthError(self._no_gt_message())
+        if self.against_dark and (self.test_mode != "val" or not self.eval_dataset):
+            raise MissingGroundTruthError(self._dark_message())
+
+    @property
+    def fixed_indices_eval_dataloader(self) -> List[Tuple[Cameras, Dict]]:
+        self._check_truth()
         return super().fixed_indices_eval_dataloader
 
     def next_eval_image(self, step: int) -> Tuple[Cameras, Dict]:
-        if not self.has_ground_truth:
-            raise MissingGroundTruthError(self._no_gt_message())
+        self._check_truth()
         return super().next_eval_image(step)
 
     def next_eval(self, step: int) -> Tuple[Cameras, Dict]:
-        if not self.has_ground_truth:
-            raise MissingGroundTruthError(self._no_gt_message())
+        self._check_truth()
         return super().next_eval(step)

@@ -149,6 +149,21 @@ class NakaGSPipeline(VanillaPipeline):
             return f"its {key} is {tuple(value.shape)}, where the model for {data} has {tuple(here.shape)}"
         return None
 
+    # ---------------------------------------------------------------------------------- eval labels
+    def get_eval_image_metrics_and_images(self, step: int) -> Tuple[Dict[str, float], Dict[str, torch.Tensor]]:
+        metrics, images = super().get_eval_image_metrics_and_images(step)
+        return self._labelled(metrics), images
+
+    def get_average_eval_image_metrics(self, *args: Any, **kwargs: Any) -> Dict[str, float]:
+        return self._labelled(super().get_average_eval_image_metrics(*args, **kwargs))
+
+    def _labelled(self, metrics: Dict[str, Any]) -> Dict[str, Any]:
+        """Metrics scored against dark captures (a held-out view of a nerfstudio-data or colmap scene) are
+        ``vs_dark_psnr`` ..., never read as quality; timings (``num_rays*``, ``fps``) keep their names."""
+        if not self.datamanager.against_dark:
+            return metrics
+        return {k if k.startswith(("num_rays", "fps")) else f"vs_dark_{k}": v for k, v in metrics.items()}
+
     # ---------------------------------------------------------------------------------- seeding
     def _resolve_seed(self, compute: bool) -> SeedResult:
         init = self.config.init
@@ -157,8 +172,12 @@ class NakaGSPipeline(VanillaPipeline):
             return SeedResult(None, None, {"source": "random", "reason": "random_init"})
         outputs = self.datamanager.train_dataparser_outputs
         scene = Path(self.datamanager.config.dataparser.data)
-        train = read_split(scene, "transforms_train.json")
-        frame = TrainingFrame.from_split(scene, train, outputs.dataparser_transform, outputs.dataparser_scale)
+        layout = outputs.metadata.get("seed_frame")
+        if layout is not None:  # nerfstudio-data, colmap: the frame of their own points
+            frame = TrainingFrame.from_layout(scene, layout)
+        else:  # lowlight-data: the world frame of transforms_train.json
+            train = read_split(scene, "transforms_train.json")
+            frame = TrainingFrame.from_split(scene, train, outputs.dataparser_transform, outputs.dataparser_scale)
         return resolve_seed_points(init, frame, self._triangulate, self._triangulation_key, compute=compute)
 
     def _triangulation_key(self) -> Dict[str, Any]:

@@ -18,7 +18,9 @@ and any external point cloud share one frame (``dataparser_transform`` [3, 4] an
 
 ``downscale_factor`` writes downscaled copies to a writable cache (the scene may be read-only).
 Eval frames whose images are all missing still load their poses; ``metadata["has_ground_truth"]``
-is then ``False`` and the datamanager refuses metrics with a one-line message.
+is then ``False`` and the datamanager refuses metrics with a one-line message. An eval json whose images are dark
+captures, not normal-light truth (``naka-gs-process-data`` writes such scenes), says so with the top-level key
+``"eval_truth": "dark"`` (default ``"normal-light"``): ``metadata["eval_truth"]``, which the datamanager labels.
 
 Every file read (the transforms jsons, every split's images) must be a regular file: a FIFO, a device
 (``file_path: /dev/zero``) or a socket is refused in one line naming it before anything is opened
@@ -352,6 +354,11 @@ class SplitFrames:
     intrinsics: Float[Tensor, "N 6"]  # fx fy cx cy w h, pixels
     distortion: Float[Tensor, "N 6"]  # nerfstudio order k1 k2 k3 k4 p1 p2
     json_path: Path
+    eval_truth: Literal["normal-light", "dark"] = "normal-light"
+    """What the split's images are as eval truth: normal-light images, or the dark captures (the json's key)."""
+
+
+EVAL_TRUTHS = ("normal-light", "dark")
 
 
 def read_split(scene: Path, json_name: str) -> SplitFrames:
@@ -377,6 +384,9 @@ def read_split(scene: Path, json_name: str) -> SplitFrames:
         dist.append(camera_utils.get_distortion_params(**k).tolist())
     if not images:
         raise _fail(path, "no frames", "list at least one frame")
+    truth = meta.get("eval_truth", "normal-light")
+    if truth not in EVAL_TRUTHS:
+        raise _fail(path, f"'eval_truth' is {truth!r}", "give 'normal-light' or 'dark' (the images are dark captures)")
     if padded and path.resolve() not in _WARNED_PADDED:
         _WARNED_PADDED.add(path.resolve())
         CONSOLE.log(
@@ -384,7 +394,9 @@ def read_split(scene: Path, json_name: str) -> SplitFrames:
             "0 0 0 0; read as 0 0 0 1 (a 3x4 camera-to-world padded with zeros)",
             markup=False,
         )
-    return SplitFrames(images, torch.stack(poses), torch.tensor(intr, dtype=torch.float64), torch.tensor(dist), path)
+    return SplitFrames(
+        images, torch.stack(poses), torch.tensor(intr, dtype=torch.float64), torch.tensor(dist), path, truth
+    )
 
 
 def normalization(train_poses: Float[Tensor, "N 4 4"], config: LowLightDataParserConfig) -> Tuple[Tensor, float]:
@@ -463,14 +475,14 @@ class LowLightDataParser(DataParser):
 
         if self.config.downscale_factor is not None and self.config.downscale_factor < 1:
             raise LowLightDataError(
-                f"--pipeline.datamanager.dataparser.downscale-factor must be a whole number >= 1, got "
+                f"lowlight-data --downscale-factor must be a whole number >= 1, got "
                 f"{self.config.downscale_factor}: pass 1 (full resolution), 2, 4, ... or leave it out (automatic)"
             )
         factor = self.config.downscale_factor or auto_downscale(*frames.intrinsics[0, 4:6].tolist())
         side = int(frames.intrinsics[:, 4:6].min()) // factor  # the floor Cameras.rescale_output_resolution takes
         if side < MIN_IMAGE_SIDE:
             raise LowLightDataError(
-                f"--pipeline.datamanager.dataparser.downscale-factor {factor}: makes the images' shorter side "
+                f"lowlight-data --downscale-factor {factor}: makes the images' shorter side "
                 f"{side} px, under the {MIN_IMAGE_SIDE} px minimum (training starts at 1/4 size) -- pass a smaller "
                 "factor or leave it out (automatic)"
             )
@@ -503,6 +515,9 @@ class LowLightDataParser(DataParser):
             dataparser_scale=scale,
             metadata={
                 "has_ground_truth": has_gt,
+                "eval_truth": frames.eval_truth,
+                "truth_note": f"{frames.json_path.name} says its images are the dark captures",
+                "layout": "lowlight-data",
                 "downscale_factor": factor,
                 "scene": str(scene),
                 "source_images": frames.images,  # the user's files (image_filenames may be downscaled copies)

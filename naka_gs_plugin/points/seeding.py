@@ -110,6 +110,12 @@ class TrainingFrame:
     scale: float
     """Dataparser scale (normalized units per world unit)."""
     scene: Path
+    points: Optional[Path] = None
+    """The layout's own point source (nerfstudio-data's ``ply_file_path``, a colmap layout's model): ``auto`` takes
+    it before looking in the scene folder."""
+    points_cameras: Optional[Dict[str, np.ndarray]] = None
+    """Camera centres (world units, by image name) of ``points`` when the file carries none but shares the poses'
+    frame (nerfstudio-data's ply): the alignment then fits them to themselves."""
 
     @classmethod
     def from_scene(cls, scene: Path, parser: Optional[LowLightDataParserConfig] = None) -> "TrainingFrame":
@@ -127,6 +133,21 @@ class TrainingFrame:
             transform=transform.double().numpy(),
             scale=float(scale),
             scene=Path(scene),
+        )
+
+    @classmethod
+    def from_layout(cls, scene: Path, info: Dict[str, Any]) -> "TrainingFrame":
+        """From a nerfstudio-data or colmap layout's ``metadata["seed_frame"]`` (:func:`~naka_gs_plugin.data.layouts.
+        seed_frame`): its world frame is that of the layout's own points."""
+        names, centres = list(info["names"]), np.asarray(info["centres"], np.float64)
+        return cls(
+            names=names,
+            centres=centres,
+            transform=np.asarray(info["transform"], np.float64),
+            scale=float(info["scale"]),
+            scene=Path(scene),
+            points=info["points"],
+            points_cameras=dict(zip(names, centres)) if info["points_share_frame"] else None,
         )
 
     def normalize(self, xyz: Float[np.ndarray, "N 3"]) -> Float[np.ndarray, "N 3"]:
@@ -369,7 +390,7 @@ def resolve_seed_points(
         return _random("requested: --pipeline.init.points random")
     path: Optional[Path] = None
     if init.points == "auto":
-        path = find_scene_source(frame.scene)
+        path = frame.points or find_scene_source(frame.scene)
     elif init.points == "triangulate":
         if triangulate is None:
             raise PointSourceError(f"{frame.scene}: points 'triangulate' needs the training pipeline's enhanced images")
@@ -383,7 +404,13 @@ def resolve_seed_points(
     if path is not None:
         key = cache_key({"files": [_stat(p) for p in source_files(path)], "path": str(path.resolve()),
                          "options": _init_options(init), "frame": _frame_key(frame)})  # fmt: skip
-        producer = lambda: prepare_points(load_points(path), frame, init)  # noqa: E731
+
+        def producer():
+            cloud = load_points(path)
+            if path == frame.points and frame.points_cameras and not cloud.cameras:
+                cloud.cameras = frame.points_cameras
+            return prepare_points(cloud, frame, init)
+
     elif triangulate is not None and (init.triangulate or init.points == "triangulate"):
         if not compute:
             return _random(_NO_COMPUTE)

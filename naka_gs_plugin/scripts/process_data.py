@@ -7,13 +7,15 @@ the result is written as a ``lowlight-data`` scene that references the **origina
 
     SCENE/images/<name>            byte copies of the registered originals (or video frames)
     SCENE/transforms_train.json    fl_x fl_y cx cy w h + k1 k2 p1 p2, frames with OpenGL c2w
-    SCENE/transforms_test.json     every ``eval_every``-th registered view (name order), same format
+    SCENE/transforms_test.json     "eval_truth": "dark"; the training views themselves (the default), or with
+                                   --eval-every N every N-th registered view (name order), held out
     SCENE/sparse/0/*.bin           the COLMAP model (image names = SCENE/images names): point source
     SCENE/process_data.json        the report: registered / total, reprojection error, points, timings
 
 Poses stay in COLMAP's world frame (no re-orientation: the dataparser normalizes), so the sparse
-points and the transforms share one frame. The held-out views carry low-light images, not
-normal-light truth. Everything is staged in a hidden sibling folder and moved into place only when
+points and the transforms share one frame. Every registered view trains by default: a held-out view would carry a
+low-light image, not normal-light truth, so ``ns-eval`` on such a scene says so in one line, and metrics of views held
+out with ``--eval-every N`` are labelled ``vs_dark_*`` during training. Everything is staged in a hidden sibling folder and moved into place only when
 at least 3 images registered: a failed run leaves nothing behind, and Ctrl-C or SIGTERM removes it and exits
 130 / 143, even inside pycolmap. The scene's ``.naka-gs-output`` marker lists its files; ``--overwrite`` replaces
 only such a folder holding nothing else, and an --output-dir equal to, inside or containing --data is refused.
@@ -181,8 +183,9 @@ class ProcessData:
     """Sequential matching: each image is matched with this many following ones (name order)."""
     max_image_size: int = 1600
     """SIFT runs on images resized to at most this many pixels per side (poses and intrinsics stay full size)."""
-    eval_every: int = 8
-    """Hold out every N-th registered image (name order, starting with the first) as the test split."""
+    eval_every: int = 0
+    """0: every registered image trains (no held-out view: it would be a dark capture, not normal-light truth);
+    N >= 2: hold out every N-th (name order, starting with the first), scored against its dark image."""
     video_fps: float = 2.0
     """Frames per second sampled from a video input."""
     enhance: EnhanceConfig = field(default_factory=lambda: EnhanceConfig(use_cache=False))
@@ -219,8 +222,10 @@ class ProcessData:
             raise ProcessDataError(
                 f"{self.data}: not a folder or a video ({', '.join(VIDEO_SUFFIXES)}) -- pass the folder of images"
             )
-        if self.eval_every < 2:
-            raise ProcessDataError(f"--eval-every {self.eval_every}: must be >= 2 (one view in N is held out)")
+        if self.eval_every < 0 or self.eval_every == 1:
+            raise ProcessDataError(
+                f"--eval-every {self.eval_every}: must be 0 (every view trains) or >= 2 (one view in N is held out)"
+            )
         if self.max_image_size < 64 or self.video_fps <= 0 or self.sequential_overlap < 1:
             raise ProcessDataError("--max-image-size must be >= 64, --video-fps > 0, --sequential-overlap >= 1")
 
@@ -391,15 +396,18 @@ class ProcessData:
         for k, (i, image) in enumerate(registered):
             shutil.copy2(sources[i], stage / "images" / names[i])
             c2w = c2w_opencv_of(image) @ GL_FROM_CV
-            split = "test" if k % self.eval_every == 0 else "train"
+            split = "test" if self.eval_every and k % self.eval_every == 0 else "train"
             frames[split].append({"file_path": f"images/{names[i]}", "transform_matrix": c2w.tolist()})
         if not frames["train"]:
             raise ProcessDataError(f"{self.data}: no training view left with --eval-every {self.eval_every}")
         cameras = {image.camera_id for _, image in registered}
         intrinsics = camera_json(model.cameras[cameras.pop()])
-        for split, items in frames.items():
-            body = {**intrinsics, "frames": items}
-            (stage / f"transforms_{split}.json").write_text(json.dumps(body, indent=1))
+        # The eval split holds dark captures (the training views when none is held out): said in the json, so that
+        # metrics against it are labelled and ns-eval refuses them.
+        train = {**intrinsics, "frames": frames["train"]}
+        test = {**intrinsics, "eval_truth": "dark", "frames": frames["test"] or frames["train"]}
+        (stage / "transforms_train.json").write_text(json.dumps(train, indent=1))
+        (stage / "transforms_test.json").write_text(json.dumps(test, indent=1))
         sparse = stage / "sparse" / "0"
         sparse.mkdir(parents=True)
         model.write_binary(sparse)

@@ -19,6 +19,7 @@ import pycolmap
 import pytest
 
 from naka_gs_plugin.data.lowlight_dataparser import LowLightDataParserConfig
+from naka_gs_plugin.datamanager import LowLightDatamanagerConfig, MissingGroundTruthError
 from naka_gs_plugin.enhance.pipeline import EnhanceConfig
 from naka_gs_plugin.points.align import match_names
 from naka_gs_plugin.points.sfm import compare_poses
@@ -37,14 +38,32 @@ def capture(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def processed(capture, tmp_path_factory):
     out = tmp_path_factory.mktemp("processed") / "scene"
-    report = ProcessData(data=capture / "train", output_dir=out, eval_every=4, enhance=NAKA).main()
+    report = ProcessData(data=capture / "train", output_dir=out, enhance=NAKA).main()  # default: every view trains
     return out, report
 
 
 def _frames(scene: Path):
-    return [
-        f for split in ("train", "test") for f in json.loads((scene / f"transforms_{split}.json").read_text())["frames"]
-    ]
+    """The scene's registered views, once each (the default's test split lists the training views again)."""
+    frames = {
+        f["file_path"]: f
+        for split in ("train", "test")
+        for f in json.loads((scene / f"transforms_{split}.json").read_text())["frames"]
+    }
+    return list(frames.values())
+
+
+def _datamanager(scene: Path, test_mode: str):
+    config = LowLightDatamanagerConfig(
+        dataparser=LowLightDataParserConfig(data=scene, downscale_factor=4), enhance=NAKA
+    )
+    return config.setup(device="cpu", test_mode=test_mode)
+
+
+def _ns_eval_line(scene: Path) -> str:
+    """What ``ns-eval`` on a run of ``scene`` ends with (its datamanager is built with test_mode ``test``)."""
+    with pytest.raises(MissingGroundTruthError) as err:
+        _datamanager(scene, "test").fixed_indices_eval_dataloader
+    return str(err.value)
 
 
 def test_recovered_poses_match_the_truth_after_sim3(capture, processed):
@@ -61,13 +80,14 @@ def test_recovered_poses_match_the_truth_after_sim3(capture, processed):
     assert errors["centre_error_pct"].max() < 2.0, errors["centre_error_pct"]
 
 
-def test_scene_references_the_original_images_and_holds_out_every_nth(capture, processed):
+def test_scene_references_the_original_images_and_trains_on_every_view(capture, processed):
     scene, report = processed
     train = json.loads((scene / "transforms_train.json").read_text())
     test = json.loads((scene / "transforms_test.json").read_text())
     names = sorted(p.name for p in (capture / "train").iterdir())
-    assert [f["file_path"] for f in test["frames"]] == [f"images/{n}" for n in names[::4]]
-    assert len(train["frames"]) + len(test["frames"]) == N_VIEWS
+    assert [f["file_path"] for f in train["frames"]] == [f"images/{n}" for n in names]  # no view held out
+    assert test["frames"] == train["frames"] and test["eval_truth"] == "dark"
+    assert (report["train_views"], report["test_views"]) == (N_VIEWS, 0)
     for name in names:  # byte copies of the dark originals
         assert (scene / "images" / name).read_bytes() == (capture / "train" / name).read_bytes()
     assert {"k1", "k2", "p1", "p2", "fl_x", "cx", "w", "h"} <= set(train)
@@ -93,13 +113,13 @@ def test_sparse_points_share_the_frame_of_the_transforms(processed):
 def test_scene_parses_and_trains_30_steps(processed, tmp_path):
     scene, _ = processed
     outputs = LowLightDataParserConfig(data=scene).setup().get_dataparser_outputs("train")
-    assert len(outputs.image_filenames) == N_VIEWS - N_VIEWS // 4 and outputs.metadata["has_ground_truth"]
+    assert len(outputs.image_filenames) == N_VIEWS
     cmd = [
         str(Path(sys.executable).parent / "ns-train"), "naka-gs", "--data", str(scene),
         "--max-num-iterations", "30", "--output-dir", str(tmp_path / "out"), "--vis", "tensorboard",
         "--viewer.quit-on-train-completion", "True", "--pipeline.model.num-random", "2000",
         "--pipeline.datamanager.enhance.correction", "none",
-        "--pipeline.datamanager.dataparser.downscale-factor", "4", "--timestamp", "run",
+        "--timestamp", "run", "lowlight-data", "--downscale-factor", "4",
     ]  # fmt: skip
     env = {**os.environ, "TORCHDYNAMO_DISABLE": "1", "NAKA_GS_CACHE": str(tmp_path / "cache")}
     result = subprocess.run(cmd, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
@@ -107,6 +127,36 @@ def test_scene_parses_and_trains_30_steps(processed, tmp_path):
     assert list((tmp_path / "out").rglob("step-*.ckpt"))
     log = " ".join(result.stdout.split())
     assert f"seed points: COLMAP model {scene / 'sparse' / '0'}" in log  # the scene's default point source
+
+
+def test_the_default_scene_evaluates_nothing_and_ns_eval_says_there_is_no_truth(processed):
+    scene, _ = processed
+    training = _datamanager(scene, "val")
+    assert training.against_dark and not training.eval_dataset  # the eval views are the dark training views
+    line = _ns_eval_line(scene)
+    assert "\n" not in line and line.startswith(f"naka-gs: {scene}: no normal-light truth (transforms_test.json")
+
+
+def test_eval_every_holds_out_dark_views_labelled_as_such(capture, processed, tmp_path):
+    """``--eval-every 4`` still holds out every 4th view: scored during training against its dark image (labelled),
+    refused by ns-eval. The same registration as the default's (seeded), only the split differs."""
+    default, _ = processed
+    scene = tmp_path / "held-out"
+    report = ProcessData(data=capture / "train", output_dir=scene, eval_every=4, enhance=NAKA).main()
+    test = json.loads((scene / "transforms_test.json").read_text())
+    names = sorted(p.name for p in (capture / "train").iterdir())
+    assert [f["file_path"] for f in test["frames"]] == [f"images/{n}" for n in names[::4]]
+    assert test["eval_truth"] == "dark" and (report["train_views"], report["test_views"]) == (12, 4)
+    training = _datamanager(scene, "val")
+    assert training.against_dark and len(training.eval_dataset) == 4 and training.eval_dataset
+    assert "no normal-light truth" in _ns_eval_line(scene)
+
+
+@pytest.mark.parametrize("every", [1, -2])
+def test_eval_every_one_or_negative_is_refused(capture, tmp_path, every):
+    with pytest.raises(ProcessDataError, match=f"--eval-every {every}: must be 0 .* or >= 2"):
+        ProcessData(data=capture / "train", output_dir=tmp_path / "out", eval_every=every, enhance=NAKA).main()
+    assert not (tmp_path / "out").exists()
 
 
 def test_unmatchable_images_fail_clearly_and_write_nothing(tmp_path):
