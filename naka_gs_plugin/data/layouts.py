@@ -73,9 +73,9 @@ def _cached_images(images: List[Path], factor: int, scene: Path) -> List[Path]:
     return [downscaled_copy(Path(p), factor) for p in images] if factor > 1 else list(images)
 
 
-def _refuse_side_files(outputs: DataparserOutputs, factor: int, layout: str) -> None:
+def _refuse_side_files(has_side_files: bool, factor: int, layout: str) -> None:
     """Masks and depths would need downscaled copies in the scene (``masks_N``): refused in one line."""
-    if factor > 1 and (outputs.mask_filenames or outputs.metadata.get("depth_filenames")):
+    if factor > 1 and has_side_files:
         raise LowLightDataError(
             f"{layout}: masks or depth maps with --downscale-factor {factor} would need downscaled copies written "
             "into the scene -- pass --downscale-factor 1 (full size)"
@@ -133,7 +133,9 @@ class NerfstudioLayout(Nerfstudio):
         scene = path.parent
         outputs = super()._generate_dataparser_outputs(split)
         factor = int(self.downscale_factor or 1)
-        _refuse_side_files(outputs, factor, "nerfstudio-data")
+        _refuse_side_files(
+            bool(outputs.mask_filenames or outputs.metadata.get("depth_filenames")), factor, "nerfstudio-data"
+        )
         sources = list(outputs.image_filenames)
         outputs.image_filenames = _cached_images(sources, factor, scene)
         _layout_metadata(outputs, "nerfstudio-data", scene, factor, sources)
@@ -179,11 +181,7 @@ class ColmapLayout(ColmapDataParser):
         if self._downscale_factor is None:
             self._downscale_factor = self.config.downscale_factor or auto_downscale(*_image_size(image_filenames[0]))
         factor = int(self._downscale_factor)
-        if factor > 1 and (mask_filenames or depth_filenames):
-            raise LowLightDataError(
-                f"colmap: masks or depth maps with --downscale-factor {factor} would need downscaled copies written "
-                "into the scene -- pass --downscale-factor 1 (full size)"
-            )
+        _refuse_side_files(bool(mask_filenames or depth_filenames), factor, "colmap")
         images = _cached_images(image_filenames, factor, Path(self.config.data))
         self._source_of = {str(c): s for c, s in zip(images, image_filenames)}
         return images, mask_filenames, depth_filenames, factor

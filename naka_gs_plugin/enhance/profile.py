@@ -419,6 +419,17 @@ def _area(image: Float[Tensor, "H W 3"], long_side: int) -> Float[Tensor, "h w 3
     return torch.nn.functional.avg_pool2d(x, f)[0].permute(1, 2, 0)
 
 
+def _fit_pixels(
+    inputs: Sequence[Float[Tensor, "H W 3"]], references: Sequence[Float[Tensor, "H W 3"]]
+) -> tuple[Float[Tensor, "N 3"], Float[Tensor, "N 3"]]:
+    """The pixels the profile's maps are fitted on: each pair area-downscaled to :data:`FIT_LONG_SIDE`, less those
+    whose reference is clipped (they carry no level or colour: they would pull the maps down at the top)."""
+    x = torch.cat([_area(i.float(), FIT_LONG_SIDE).reshape(-1, 3) for i in inputs])
+    y = torch.cat([_area(r.float(), FIT_LONG_SIDE).reshape(-1, 3) for r in references])
+    keep = y.max(dim=1).values < 0.98
+    return x[keep], y[keep]
+
+
 def fit_profile(
     enhanced: Sequence[Float[Tensor, "H W 3"]],
     references: Sequence[Float[Tensor, "H W 3"]],
@@ -431,14 +442,7 @@ def fit_profile(
     ``batch`` pixels (cosine learning rate); curves kept monotone by construction (cumulative softplus steps).
     Returns ``(curves, matrix, stats)``."""
     gen = torch.Generator().manual_seed(seed)
-    xs, ys = [], []
-    for e, r in zip(enhanced, references):
-        xs.append(_area(e.float(), FIT_LONG_SIDE).reshape(-1, 3))
-        ys.append(_area(r.float(), FIT_LONG_SIDE).reshape(-1, 3))
-    x, y = torch.cat(xs), torch.cat(ys)
-    # Clipped references carry no level: they would pull the curves down at the top.
-    keep = y.max(dim=1).values < 0.98
-    x, y = x[keep], y[keep]
+    x, y = _fit_pixels(enhanced, references)
     knots = torch.linspace(0, 1, KNOTS)
     start = srgb_to_linear(knots[:, None].expand(-1, 3))[:, 0].clamp(min=1e-6)
     # Parameters: the first knot's value and softplus steps between knots (monotone); identity start.
@@ -483,10 +487,7 @@ def fit_lut(
     plus ``smoothness`` x the mean squared difference of neighbouring cells, Adam on ``steps`` random batches (cosine
     learning rate), from zero (no change). Returns ``(lut, stats)``."""
     gen = torch.Generator().manual_seed(seed)
-    x = torch.cat([_area(p.float(), FIT_LONG_SIDE).reshape(-1, 3) for p in profiled])
-    y = torch.cat([_area(r.float(), FIT_LONG_SIDE).reshape(-1, 3) for r in references])
-    keep = y.max(dim=1).values < 0.98  # as fit_profile: clipped references carry no colour
-    x, y = x[keep], y[keep]
+    x, y = _fit_pixels(profiled, references)
     lut = torch.zeros(3, size, size, size, requires_grad=True)
     opt = torch.optim.Adam([lut], lr=0.01)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps)
